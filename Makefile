@@ -1,0 +1,52 @@
+# The only commands a newcomer needs:
+#   make reconstruct INPUT=photo.png     install what is missing, then run the pipeline on a photo (or a folder)
+#   make test                            install what is missing, then run the test suite
+# Others: make setup | lint | bench | doctor | clean-venv
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+JOBS   ?= 1
+ARGS   ?=
+
+.PHONY: setup reconstruct test lint bench doctor clean-venv
+
+setup: $(STAMP)
+
+# Re-runs only when pyproject.toml changes, so an installed machine pays nothing.
+$(STAMP): pyproject.toml
+	@./scripts/check_system.sh
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@$(PY) -m pip install -q --upgrade pip >/dev/null
+	@# torch: keep one that is installed; with an NVIDIA GPU take PyPI's default (CUDA) build,
+	@# without one pin the CPU release the project is tested with.
+	@if ! $(PY) -c "import torch" 2>/dev/null; then \
+	  if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then \
+	    echo "installing torch (CUDA build)"; $(PY) -m pip install -q "torch>=2.3"; \
+	  else \
+	    echo "installing torch==2.13.0 (no CUDA GPU found)"; $(PY) -m pip install -q "torch==2.13.0"; \
+	  fi; \
+	fi
+	@$(PY) -m pip install -q -e ".[dev]"
+	@$(PY) -m humanvdm_core.doctor
+	@touch $(STAMP)
+
+reconstruct: setup
+	@if [ -z "$(INPUT)" ]; then echo "usage: make reconstruct INPUT=photo.png (or a folder of photos)"; exit 2; fi
+	$(VENV)/bin/humanvdm run "$(INPUT)" --jobs $(JOBS) $(ARGS)
+
+test: setup
+	$(PY) -m pytest -q $(ARGS)
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+bench: setup
+	$(PY) -m benchmarks.run $(ARGS)
+
+doctor: setup
+	$(PY) -m humanvdm_core.doctor
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,235 @@
+"""``humanvdm``: run, explain and maintain the pipeline.
+
+    humanvdm run INPUT... [--jobs N] [--force STAGE] [--until STAGE] [--set stage.param=value] [--dry-run]
+    humanvdm status INPUT...        per stage: would it run, and why
+    humanvdm dag                    the stages, their inputs and outputs
+    humanvdm verify                 re-hash the whole store, quarantine corrupt entries
+    humanvdm gc                     remove artifacts that no run references
+    humanvdm show RUN|ARTIFACT_ID   a run's lockfile summary, or an artifact's files and origin
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import yaml
+
+from humanvdm_core.errors import HumanVDMError
+from humanvdm_core.pipeline import Pipeline, load_pipeline
+from humanvdm_core.scheduler import (
+    BLOCKED,
+    CACHED,
+    FAILED,
+    MAY_RUN,
+    NOT_IMPLEMENTED,
+    RAN,
+    SKIPPED,
+    UP_TO_DATE,
+    WILL_RUN,
+    Scheduler,
+    read_lockfile,
+    referenced_ids,
+)
+from humanvdm_core.store import Store
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def default_pipeline() -> Path:
+    local = Path("pipeline.yaml")
+    return local if local.is_file() else REPO_ROOT / "pipeline.yaml"
+
+
+def parse_sets(items: list[str]) -> dict[str, dict[str, str]]:
+    out: dict[str, dict[str, str]] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        stage, dot, param = key.rpartition(".")
+        if not sep or not dot or not stage or not param:
+            raise HumanVDMError(f"--set {item!r}: expected stage.param=value")
+        out.setdefault(stage, {})[param] = value
+    return out
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--store", type=Path, default=Path(os.environ.get("HUMANVDM_STORE", "artifacts")),
+                   help="artifact store folder (default: ./artifacts or $HUMANVDM_STORE)")
+    p.add_argument("--pipeline", type=Path, default=None, help="pipeline.yaml (default: ./pipeline.yaml, else the project's)")
+
+
+def _add_selection(p: argparse.ArgumentParser) -> None:
+    p.add_argument("inputs", nargs="+", help="photos, scans, or folders of them")
+    p.add_argument("--kind", choices=None, default=None, help="force the input kind (e.g. photo, scan)")
+    p.add_argument("--force", action="append", default=[], metavar="STAGE", help="rerun STAGE even if cached")
+    p.add_argument("--until", metavar="STAGE", help="run STAGE and what it needs, nothing after it")
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE", help="override a param")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="humanvdm", description="Single-image 3D Gaussian humans, staged and cached.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run the pipeline on inputs (cached stages are reused)")
+    _add_common(p)
+    _add_selection(p)
+    p.add_argument("-j", "--jobs", type=int, default=1, help="stage runs in parallel (default 1)")
+    p.add_argument("--dry-run", action="store_true", help="say what would run, run nothing")
+    p.add_argument("--no-progress", action="store_true")
+    p = sub.add_parser("status", help="per stage: would it run, and why")
+    _add_common(p)
+    _add_selection(p)
+    p = sub.add_parser("dag", help="show the pipeline's stages")
+    _add_common(p)
+    p.add_argument("--dot", action="store_true", help="Graphviz output")
+    p = sub.add_parser("verify", help="re-hash every artifact; quarantine corrupt ones")
+    _add_common(p)
+    p.add_argument("--no-quarantine", action="store_true", help="only report")
+    p = sub.add_parser("gc", help="remove artifacts no run references")
+    _add_common(p)
+    p = sub.add_parser("show", help="a run's lockfile summary, or an artifact's files")
+    _add_common(p)
+    p.add_argument("what", help="run (subject) name or artifact id (prefix ok)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except HumanVDMError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: running stages were stopped; the store holds only complete artifacts", file=sys.stderr)
+        return 130
+
+
+def _pipeline(args) -> Pipeline:
+    return load_pipeline(args.pipeline or default_pipeline())
+
+
+def _scheduler(args, pipe: Pipeline, store: Store, **kw) -> Scheduler:
+    return Scheduler(pipe, store, overrides=parse_sets(args.set), force=set(args.force), until=args.until, **kw)
+
+
+def _subjects(args, store: Store, pipe: Pipeline):
+    from humanvdm_core.inputs import discover, import_subject
+
+    subjects = discover(args.inputs, args.kind)
+    for s in subjects:
+        if s.kind not in pipe.inputs:
+            raise HumanVDMError(f"{s.source}: kind {s.kind!r} is not an input of {pipe.path} ({list(pipe.inputs)})")
+        import_subject(store, s)
+    return subjects
+
+
+MARK = {UP_TO_DATE: "ok ", WILL_RUN: "RUN", MAY_RUN: "run?", NOT_IMPLEMENTED: "n/i", BLOCKED: "blk"}
+
+
+def cmd_status(args) -> int:
+    pipe = _pipeline(args)
+    store = Store(args.store)
+    runs = _scheduler(args, pipe, store).status(_subjects(args, store, pipe))
+    _print_status(runs)
+    return 0
+
+
+def _print_status(runs) -> None:
+    subject = None
+    for r in runs:
+        if r.subject.name != subject:
+            subject = r.subject.name
+            print(f"{subject} ({r.subject.kind}: {r.subject.source})")
+        print(f"  {MARK.get(r.state, r.state):4} {r.stage:24} {r.state}: {r.reason}")
+
+
+def cmd_run(args) -> int:
+    pipe = _pipeline(args)
+    store = Store(args.store)
+    sched = _scheduler(args, pipe, store, jobs=args.jobs, progress=False if args.no_progress else None)
+    subjects = _subjects(args, store, pipe)
+    if args.dry_run:
+        _print_status(sched.status(subjects))
+        return 0
+    summary = sched.run(subjects)
+    ran, cached = summary.count(RAN), summary.count(CACHED)
+    print(f"\n{len(subjects)} input(s): {ran} stage run(s) ran, {cached} cached, "
+          f"{summary.count(FAILED)} failed, {summary.count(SKIPPED)} skipped")
+    missing = sorted({r.stage for r in summary.runs if r.state == NOT_IMPLEMENTED})
+    if missing:
+        blocked = sorted({r.stage for r in summary.runs if r.state == BLOCKED})
+        print(f"not implemented yet: {', '.join(missing)}" + (f" (so not run: {', '.join(blocked)})" if blocked else ""))
+    for r in summary.failed:
+        print(f"FAILED {r.label}: {r.reason}\n  log: {r.log}")
+    for s in subjects:
+        print(f"outputs of {s.name}: {store.root / 'runs' / s.name}")
+    return 0 if summary.ok else 1
+
+
+def cmd_dag(args) -> int:
+    pipe = _pipeline(args)
+    if args.dot:
+        print("digraph humanvdm {")
+        for name, sd in pipe.stages.items():
+            style = "" if sd.implemented else ' [style=dashed, label="' + name + '\\n(not implemented)"]'
+            print(f'  "{name}"{style};')
+            for alts in sd.inputs.values():
+                for ref in alts:
+                    src = f"${ref.name}" if ref.stage is None else ref.stage
+                    print(f'  "{src}" -> "{name}" [label="{ref.name}"];')
+        print("}")
+        return 0
+    for name in pipe.order():
+        sd = pipe.stages[name]
+        ins = ", ".join(f"{k}<-{' | '.join(map(str, v))}" for k, v in sd.inputs.items())
+        flag = "" if sd.implemented else "  [not implemented yet]"
+        print(f"{name}{flag}\n    module: {sd.module}  backend: {sd.backend}\n    in:  {ins}\n    out: {', '.join(sd.outputs)}")
+    return 0
+
+
+def cmd_verify(args) -> int:
+    store = Store(args.store)
+    report = store.verify(quarantine=not args.no_quarantine)
+    print(f"checked {report.checked} artifacts: {len(report.corrupt)} corrupt")
+    for artifact_id, moved in zip(report.corrupt, report.quarantined or [None] * len(report.corrupt), strict=False):
+        print(f"  corrupt {artifact_id}" + (f" -> moved to {moved} (it will be recomputed)" if moved else ""))
+    return 1 if report.corrupt else 0
+
+
+def cmd_gc(args) -> int:
+    store = Store(args.store)
+    with store.exclusive_use():
+        removed, freed = store.gc(referenced_ids(store))
+    print(f"removed {len(removed)} unreferenced artifacts, freed {freed / 1e6:.1f} MB")
+    return 0
+
+
+def cmd_show(args) -> int:
+    store = Store(args.store)
+    lock = read_lockfile(store, args.what)
+    if lock:
+        print(yaml.safe_dump({"input": lock.get("input")}, sort_keys=False).rstrip())
+        for stage, e in (lock.get("stages") or {}).items():
+            outs = ", ".join(f"{k}={v[:12]}" for k, v in (e.get("outputs") or {}).items())
+            print(f"{stage:24} {e.get('status', ''):7} {e.get('wall_s') or 0:8.2f} s "
+                  f"{e.get('peak_rss_mb') or 0:8.0f} MB  {e.get('backend')}  {outs}")
+        return 0
+    matches = [i for i in store.all_ids() if i.startswith(args.what)]
+    if len(matches) != 1:
+        raise HumanVDMError(f"{args.what!r}: no run of that name and {len(matches)} artifacts with that id prefix")
+    artifact_id = matches[0]
+    files = store.manifest(artifact_id) or {}
+    producers = [r for _, r in store.all_records() if r and artifact_id in (r.get("outputs") or {}).values()]
+    print(json.dumps({"id": artifact_id, "path": str(store.object_path(artifact_id)), "files": len(files),
+                      "produced_by": [{k: r.get(k) for k in ("stage", "key", "backend", "params", "wall_s")}
+                                      for r in producers]}, indent=1))
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "status": cmd_status, "dag": cmd_dag, "verify": cmd_verify, "gc": cmd_gc, "show": cmd_show}
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,104 @@
+"""Turning what a user passes on the command line into subjects (run inputs) in the store.
+
+- an image file (.png .jpg .jpeg .webp .bmp .tif .tiff .exr) -> a ``photo`` subject;
+- a mesh file (.obj with its .mtl and textures, .glb, .gltf) or a folder holding one -> a ``scan``;
+- a folder of images -> one ``photo`` subject per image (``*_mask.*`` files are skipped);
+- a folder of scan folders (the THuman2.0 layout ``NNNN/NNNN.obj``) -> one ``scan`` per folder.
+
+Subject names come from file or folder names and are made unique within a batch.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from humanvdm_core.errors import InputError
+from humanvdm_core.scheduler import Subject
+from humanvdm_core.store import Store
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".exr"}
+MESH_SUFFIXES = {".obj", ".glb", ".gltf"}
+
+
+def _meshes_in(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+
+
+def _is_mask(p: Path) -> bool:
+    return p.stem.lower().endswith(("_mask", "_alpha"))
+
+
+def discover(paths: list[str | Path], kind: str | None = None) -> list[Subject]:
+    """Subjects for the given files/folders (not yet imported). ``kind`` forces photo or scan."""
+    subjects: list[Subject] = []
+    for raw in paths:
+        p = Path(raw).expanduser()
+        if not p.exists():
+            raise InputError(f"input not found: {p}")
+        if p.is_file():
+            suffix = p.suffix.lower()
+            if kind is not None:
+                subjects.append(Subject(p.stem, kind, p.resolve()))
+            elif suffix in IMAGE_SUFFIXES:
+                subjects.append(Subject(p.stem, "photo", p.resolve()))
+            elif suffix in MESH_SUFFIXES:
+                subjects.append(Subject(p.stem, "scan", p.resolve()))
+            else:
+                raise InputError(f"{p}: not an image ({sorted(IMAGE_SUFFIXES)}) nor a mesh ({sorted(MESH_SUFFIXES)})")
+        elif _meshes_in(p):
+            subjects.append(Subject(p.name, kind or "scan", p.resolve()))
+        else:
+            images = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES
+                            and not _is_mask(f))
+            scans = sorted(d for d in p.iterdir() if d.is_dir() and _meshes_in(d))
+            if images and kind != "scan":
+                subjects.extend(Subject(f.stem, kind or "photo", f.resolve()) for f in images)
+            elif scans:
+                subjects.extend(Subject(d.name, kind or "scan", d.resolve()) for d in scans)
+            else:
+                raise InputError(f"{p}: no images, meshes or scan folders found")
+    if not subjects:
+        raise InputError("no inputs given")
+    _unique_names(subjects)
+    return subjects
+
+
+def _unique_names(subjects: list[Subject]) -> None:
+    seen: dict[str, int] = {}
+    for s in subjects:
+        base = re.sub(r"[^A-Za-z0-9._-]+", "_", s.name).strip("._") or "input"
+        n = seen.get(base, 0)
+        seen[base] = n + 1
+        s.name = base if n == 0 else f"{base}-{n + 1}"
+
+
+def import_subject(store: Store, subject: Subject) -> str:
+    """Put the subject's files in the store (once) and set ``subject.input_id``."""
+    src = subject.source
+    if src.is_file() and src.suffix.lower() == ".obj":
+        names = {src.name: str(src)}
+        names.update(_obj_sidecars(src))
+        subject.input_id = store.import_path(src, names)
+    elif src.is_file() and src.suffix.lower() in MESH_SUFFIXES:
+        subject.input_id = store.import_path(src, {src.name: str(src)})
+    else:
+        subject.input_id = store.import_path(src)
+    return subject.input_id
+
+
+def _obj_sidecars(obj: Path) -> dict[str, str]:
+    """The .mtl files an OBJ names and the texture files those name (relative to the OBJ)."""
+    out: dict[str, str] = {}
+    for line in obj.read_text(errors="replace").splitlines():
+        if line.startswith("mtllib"):
+            mtl = obj.parent / line.split(maxsplit=1)[1].strip()
+            if mtl.is_file():
+                out[mtl.relative_to(obj.parent).as_posix()] = str(mtl)
+                for mline in mtl.read_text(errors="replace").splitlines():
+                    parts = mline.strip().split()
+                    if parts and parts[0].startswith("map_") and len(parts) > 1:
+                        tex = obj.parent / parts[-1]
+                        if tex.is_file():
+                            out[tex.relative_to(obj.parent).as_posix()] = str(tex)
+    return out

@@ -1,0 +1,299 @@
+"""``pipeline.yaml``: the DAG of stages, loaded and validated before anything runs.
+
+Format::
+
+    schema: 1
+    inputs:                       # what a run is given; a run binds one of them per subject
+      photo: {kind: image, help: ...}
+      scan: {kind: scan, help: ...}
+    stages:
+      upscale:
+        module: stages.upscale                  # executable: python -m stages.upscale
+        inputs: {frames: "diffuse.orbit | render-training-orbits.orbit"}
+        outputs: [frames]
+        params: {target_size: 1080}             # override the stage's own defaults
+        backend: embedded
+
+An input reference is ``$name`` (a run input) or ``stage.output``; ``a | b`` lists alternatives,
+the first one available in the run is used (a photo run has ``diffuse``, a scan run has
+``render-training-orbits``). A stage whose module does not exist yet is *not implemented*: it is
+shown, never run, and the stages that need it are blocked.
+
+Validation raises :class:`ConfigError` naming the stage for: invalid YAML or duplicate keys,
+unknown keys, cycles, references to unknown stages/outputs/inputs, duplicate outputs, params the
+stage does not declare or of the wrong type, unknown backends, and a module whose declared
+inputs/outputs differ from the YAML.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import importlib
+import importlib.util
+import sys
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from humanvdm_core.errors import ConfigError
+from humanvdm_core.stage import StageSpec
+
+_STAGE_KEYS = {"module", "inputs", "outputs", "params", "backend", "help"}
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    pass
+
+
+def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise ConfigError(f"duplicate key {key!r} at line {key_node.start_mark.line + 1}")
+        seen.add(key)
+    return yaml.SafeLoader.construct_mapping(loader, node, deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+
+
+@dataclass(frozen=True)
+class Ref:
+    """One input reference: a run input (``stage is None``) or a stage output."""
+
+    stage: str | None
+    name: str
+
+    def __str__(self) -> str:
+        return f"${self.name}" if self.stage is None else f"{self.stage}.{self.name}"
+
+
+@dataclass
+class StageDef:
+    name: str
+    module: str
+    inputs: dict[str, list[Ref]]
+    outputs: list[str]
+    params: dict[str, Any]
+    backend: str
+    help: str = ""
+    spec: StageSpec | None = None  # None: module not implemented yet
+
+    @property
+    def implemented(self) -> bool:
+        return self.spec is not None
+
+
+@dataclass
+class Pipeline:
+    path: Path
+    inputs: dict[str, dict]
+    stages: dict[str, StageDef] = field(default_factory=dict)
+
+    def order(self) -> list[str]:
+        """Stage names in a topological order (declaration order among independent stages)."""
+        return _topological(self)
+
+    def upstream(self, stage: str) -> set[str]:
+        out, todo = set(), [stage]
+        while todo:
+            for alts in self.stages[todo.pop()].inputs.values():
+                for ref in alts:
+                    if ref.stage is not None and ref.stage not in out:
+                        out.add(ref.stage)
+                        todo.append(ref.stage)
+        return out
+
+    def resolve_params(self, stage: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+        sd = self.stages[stage]
+        merged = {**sd.params, **(overrides or {})}
+        if sd.spec is None:
+            return merged
+        return sd.spec.resolve_params(merged)
+
+
+def parse_ref(stage: str, text: str) -> list[Ref]:
+    alts = []
+    for part in str(text).split("|"):
+        part = part.strip()
+        if part.startswith("$") and len(part) > 1:
+            alts.append(Ref(None, part[1:]))
+        elif part.count(".") == 1 and all(part.split(".")):
+            s, o = part.split(".")
+            alts.append(Ref(s, o))
+        else:
+            raise ConfigError(f"stage {stage}: bad input reference {part!r} (use $input or stage.output)")
+    return alts
+
+
+def load_spec(module: str) -> StageSpec | None:
+    """The ``SPEC`` of a stage module, or None when the module does not exist."""
+    try:
+        if importlib.util.find_spec(module) is None:
+            return None
+    except ModuleNotFoundError:
+        return None
+    mod = importlib.import_module(module)
+    spec = getattr(mod, "SPEC", None)
+    if not isinstance(spec, StageSpec):
+        raise ConfigError(f"module {module} has no SPEC (a humanvdm_core.stage.StageSpec)")
+    return spec
+
+
+def load_pipeline(path: str | Path) -> Pipeline:
+    """Load and validate a pipeline; its folder goes on ``sys.path`` so its stage modules import."""
+    path = Path(path).resolve()
+    if str(path.parent) not in sys.path:
+        sys.path.insert(0, str(path.parent))
+    try:
+        doc = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("stages"), dict):
+        raise ConfigError(f"{path}: expected a mapping with 'stages'")
+    if doc.get("schema", 1) != 1:
+        raise ConfigError(f"{path}: unsupported schema {doc.get('schema')}")
+    unknown_top = set(doc) - {"schema", "inputs", "stages"}
+    if unknown_top:
+        raise ConfigError(f"{path}: unknown top-level keys {sorted(unknown_top)}")
+    pipe = Pipeline(path, dict(doc.get("inputs") or {}))
+    for name, body in doc["stages"].items():
+        if not isinstance(body, dict):
+            raise ConfigError(f"stage {name}: expected a mapping")
+        extra = set(body) - _STAGE_KEYS
+        if extra:
+            raise ConfigError(f"stage {name}: unknown keys {sorted(extra)}; allowed: {sorted(_STAGE_KEYS)}")
+        if "module" not in body:
+            raise ConfigError(f"stage {name}: missing 'module'")
+        outputs = list(body.get("outputs") or [])
+        if len(set(outputs)) != len(outputs):
+            dup = sorted({o for o in outputs if outputs.count(o) > 1})
+            raise ConfigError(f"stage {name}: duplicate outputs {dup}")
+        if not outputs:
+            raise ConfigError(f"stage {name}: declares no outputs")
+        inputs = {k: parse_ref(name, v) for k, v in (body.get("inputs") or {}).items()}
+        params = body.get("params") or {}
+        if not isinstance(params, dict):
+            raise ConfigError(f"stage {name}: params must be a mapping")
+        pipe.stages[name] = StageDef(name, str(body["module"]), inputs, outputs, dict(params),
+                                     str(body.get("backend", "embedded")), str(body.get("help", "")))
+    _validate(pipe)
+    return pipe
+
+
+def _validate(pipe: Pipeline) -> None:
+    for sd in pipe.stages.values():
+        for inp, alts in sd.inputs.items():
+            for ref in alts:
+                if ref.stage is None:
+                    if ref.name not in pipe.inputs:
+                        raise ConfigError(f"stage {sd.name}: input {inp} refers to unknown run input ${ref.name}")
+                elif ref.stage not in pipe.stages:
+                    raise ConfigError(f"stage {sd.name}: input {inp} refers to unknown stage {ref.stage!r}")
+                elif ref.name not in pipe.stages[ref.stage].outputs:
+                    raise ConfigError(f"stage {sd.name}: input {inp} refers to {ref}, but stage {ref.stage} "
+                                      f"has outputs {pipe.stages[ref.stage].outputs}")
+    _topological(pipe)  # raises on cycles
+    for sd in pipe.stages.values():
+        sd.spec = load_spec(sd.module)
+        if sd.spec is None:
+            continue
+        if set(sd.spec.inputs) != set(sd.inputs) or list(sd.spec.outputs) != sd.outputs:
+            raise ConfigError(f"stage {sd.name}: pipeline declares inputs {sorted(sd.inputs)} / outputs "
+                              f"{sd.outputs}, module {sd.module} has {sorted(sd.spec.inputs)} / {list(sd.spec.outputs)}")
+        sd.spec.check_backend(sd.backend)
+        sd.spec.resolve_params(sd.params)
+
+
+def _topological(pipe: Pipeline) -> list[str]:
+    order: list[str] = []
+    state: dict[str, int] = {}
+
+    def visit(name: str, path: list[str]) -> None:
+        if state.get(name) == 2:
+            return
+        if state.get(name) == 1:
+            cycle = path[path.index(name):] + [name]
+            raise ConfigError(f"cycle in pipeline: {' -> '.join(cycle)}")
+        state[name] = 1
+        for alts in pipe.stages[name].inputs.values():
+            for ref in alts:
+                if ref.stage is not None:
+                    visit(ref.stage, path + [name])
+        state[name] = 2
+        order.append(name)
+
+    for name in pipe.stages:
+        visit(name, [])
+    return order
+
+
+# ---------------------------------------------------------------------- code fingerprints
+
+def code_fingerprint(module: str, package_roots: tuple[str, ...] = ("humanvdm_core", "stages")) -> str:
+    """Hash of a stage module's source and of every project module it imports, transitively.
+
+    Imports inside functions count (stages import heavy modules lazily). Third-party code is not
+    part of the fingerprint; its versions are recorded in the lockfile instead.
+    """
+    sources = _project_sources(module, package_roots)
+    h = hashlib.sha256()
+    for name in sorted(sources):
+        h.update(name.encode() + b"\0" + sources[name] + b"\n")
+    return h.hexdigest()
+
+
+def _project_sources(module: str, roots: tuple[str, ...]) -> dict[str, bytes]:
+    seen: dict[str, bytes] = {}
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        path = _module_file(name)
+        if path is None:
+            continue
+        src = path.read_bytes()
+        seen[name] = src
+        todo.extend(m for m in _imports(name, path, src) if m.split(".")[0] in roots)
+    return seen
+
+
+@cache
+def _module_file(name: str) -> Path | None:
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ModuleNotFoundError, ValueError):
+        return None
+    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        return None
+    return Path(spec.origin)
+
+
+def _imports(name: str, path: Path, src: bytes) -> list[str]:
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(src)):
+        if isinstance(node, ast.Import):
+            out.extend(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                parent = ".".join(parts[: len(parts) - node.level + 1])
+                base = f"{parent}.{base}" if base else parent
+            out.append(base)
+            out.extend(f"{base}.{a.name}" for a in node.names)  # `from pkg import module`
+        # parents of a submodule run their __init__ too
+    with_parents = []
+    for m in out:
+        parts = m.split(".")
+        with_parents.extend(".".join(parts[:i]) for i in range(1, len(parts) + 1))
+    return with_parents

@@ -1,0 +1,493 @@
+"""The scheduler: plans, explains and executes stage runs over the artifact store.
+
+A *subject* is one run input (a photo, a scan). For each subject the scheduler walks the pipeline
+in topological order; each stage run has a key::
+
+    sha256(stage, module, code fingerprint, resolved params, backend, weight-file hashes, input ids)
+
+A key with an intact record in the store is a cache hit: nothing runs. Otherwise the stage's
+executable runs in a subprocess (``python -m <module> ...``) into a staging folder, its outputs are
+committed to the store, and a record is written. A downstream stage's key contains its inputs'
+artifact *ids*, so when an upstream rerun reproduces the same bytes the downstream stage is a hit
+(early cutoff).
+
+Independent stage runs (other subjects, parallel branches) go to a bounded pool (``jobs``). A
+failure skips only what depends on it. Per subject, ``runs/<subject>/humanvdm.lock`` records every
+stage's key, params, input and output ids, backend, wall time, peak memory and versions, and
+``runs/<subject>/<stage>/<output>`` links to the artifacts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from humanvdm_core.errors import ConfigError, HumanVDMError
+from humanvdm_core.io import atomic_write_text
+from humanvdm_core.pipeline import Pipeline, Ref, code_fingerprint
+from humanvdm_core.store import Store
+
+LOCK_NAME = "humanvdm.lock"
+VERSIONED_PACKAGES = ("numpy", "torch", "opencv-contrib-python-headless", "openimageio", "moderngl", "trimesh")
+
+# Stage-run states.
+CACHED, RAN, FAILED = "cached", "ran", "failed"
+NOT_IMPLEMENTED, BLOCKED, SKIPPED = "not-implemented", "blocked", "skipped"
+WILL_RUN, UP_TO_DATE, MAY_RUN = "will-run", "up-to-date", "may-run"
+
+
+@dataclass
+class Subject:
+    """One run input bound to one of the pipeline's declared inputs (``kind``)."""
+
+    name: str
+    kind: str
+    source: Path
+    input_id: str | None = None
+
+
+@dataclass
+class StageRun:
+    subject: Subject
+    stage: str
+    chosen: dict[str, Ref]
+    deps: list[StageRun] = field(default_factory=list)
+    state: str = "pending"
+    reason: str = ""
+    key: str | None = None
+    inputs: dict[str, str] = field(default_factory=dict)
+    outputs: dict[str, str] = field(default_factory=dict)
+    wall_s: float | None = None
+    peak_rss_mb: float | None = None
+    log: Path | None = None
+
+    @property
+    def label(self) -> str:
+        return f"{self.subject.name}/{self.stage}"
+
+
+@dataclass
+class Summary:
+    runs: list[StageRun]
+
+    def count(self, state: str) -> int:
+        return sum(r.state == state for r in self.runs)
+
+    @property
+    def failed(self) -> list[StageRun]:
+        return [r for r in self.runs if r.state == FAILED]
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed and not any(r.state == SKIPPED for r in self.runs)
+
+
+class Scheduler:
+    def __init__(
+        self,
+        pipeline: Pipeline,
+        store: Store,
+        overrides: dict[str, dict[str, Any]] | None = None,
+        force: set[str] | None = None,
+        until: str | None = None,
+        jobs: int = 1,
+        progress: bool | None = None,
+    ):
+        self.pipeline = pipeline
+        self.store = store
+        self.overrides = overrides or {}
+        self.force = set(force or ())
+        self.until = until
+        self.jobs = max(1, int(jobs))
+        self.progress = progress
+        for stage, values in self.overrides.items():
+            if stage not in pipeline.stages:
+                raise ConfigError(f"--set: unknown stage {stage!r}; stages: {list(pipeline.stages)}")
+            if pipeline.stages[stage].spec is None:
+                raise ConfigError(f"--set: stage {stage} is not implemented yet")
+        for stage in self.force | ({until} if until else set()):
+            if stage not in pipeline.stages:
+                raise ConfigError(f"unknown stage {stage!r}; stages: {list(pipeline.stages)}")
+        self.params = {s: pipeline.resolve_params(s, self.overrides.get(s)) for s in pipeline.stages}
+        self._fingerprints: dict[str, str] = {}
+        self._lock = threading.Lock()
+        self._procs: set[subprocess.Popen] = set()
+        self._versions: dict[str, str] | None = None
+
+    # ------------------------------------------------------------------ planning
+
+    def plan(self, subjects: list[Subject]) -> list[StageRun]:
+        """Stage runs for every subject, in an order where dependencies come first."""
+        wanted = None
+        if self.until:
+            wanted = self.pipeline.upstream(self.until) | {self.until}
+        runs: list[StageRun] = []
+        for subj in subjects:
+            if subj.kind not in self.pipeline.inputs:
+                raise ConfigError(f"{subj.source}: input kind {subj.kind!r} is not declared in {self.pipeline.path}")
+            by_stage: dict[str, StageRun] = {}
+            for name in self.pipeline.order():
+                sd = self.pipeline.stages[name]
+                chosen: dict[str, Ref] = {}
+                for inp, alts in sd.inputs.items():
+                    ref = next((r for r in alts if (r.stage is None and r.name == subj.kind)
+                                or (r.stage is not None and r.stage in by_stage)), None)
+                    if ref is None:
+                        break
+                    chosen[inp] = ref
+                else:
+                    if wanted is not None and name not in wanted:
+                        continue
+                    run = StageRun(subj, name, chosen, [by_stage[r.stage] for r in chosen.values() if r.stage])
+                    if not sd.implemented:
+                        run.state, run.reason = NOT_IMPLEMENTED, f"not implemented yet (no module {sd.module})"
+                    else:
+                        missing = [d.stage for d in run.deps if d.state in (NOT_IMPLEMENTED, BLOCKED)]
+                        if missing:
+                            run.state, run.reason = BLOCKED, f"needs {', '.join(missing)} (not implemented yet)"
+                    by_stage[name] = run
+                    runs.append(run)
+        return runs
+
+    def fingerprint(self, stage: str) -> str:
+        if stage not in self._fingerprints:
+            self._fingerprints[stage] = code_fingerprint(self.pipeline.stages[stage].module)
+        return self._fingerprints[stage]
+
+    def key_material(self, run: StageRun) -> dict[str, Any]:
+        sd = self.pipeline.stages[run.stage]
+        return {
+            "stage": run.stage,
+            "module": sd.module,
+            "code": self.fingerprint(run.stage),
+            "params": self.params[run.stage],
+            "backend": sd.backend,
+            "weights": self._weight_hashes(run.stage),
+            "inputs": run.inputs,
+        }
+
+    def _weight_hashes(self, stage: str) -> dict[str, str]:
+        sd = self.pipeline.stages[stage]
+        out = {}
+        for name, p in sd.spec.params.items():
+            if p.weights and (p.backend is None or p.backend == sd.backend):
+                path = Path(str(self.params[stage][name])).expanduser()
+                out[name] = self.store.stat_cache.file_hash(path) if path.is_file() else "missing"
+        return out
+
+    def _resolve_inputs(self, run: StageRun) -> None:
+        run.inputs = {}
+        for inp, ref in run.chosen.items():
+            if ref.stage is None:
+                run.inputs[inp] = run.subject.input_id
+            else:
+                dep = next(d for d in run.deps if d.stage == ref.stage)
+                run.inputs[inp] = dep.outputs[ref.name]
+        run.key = _hash_json(self.key_material(run))
+
+    # ------------------------------------------------------------------ status
+
+    def status(self, subjects: list[Subject]) -> list[StageRun]:
+        """Say, per stage run, whether it would run and why (nothing runs)."""
+        runs = self.plan(subjects)
+        locks = {s.name: read_lockfile(self.store, s.name) for s in subjects}
+        for run in runs:
+            if run.state in (NOT_IMPLEMENTED, BLOCKED):
+                continue
+            pending = [d.stage for d in run.deps if d.state != UP_TO_DATE]
+            if pending:
+                run.state = MAY_RUN
+                run.reason = (f"after {', '.join(pending)}: reruns only if its output changes"
+                              if all(d.state in (WILL_RUN, MAY_RUN) for d in run.deps if d.stage in pending)
+                              else f"needs {', '.join(pending)}")
+                continue
+            self._resolve_inputs(run)
+            record = self.store.get_record(run.key)
+            previous = locks[run.subject.name].get("stages", {}).get(run.stage)
+            if run.stage in self.force:
+                run.state, run.reason = WILL_RUN, "forced (--force)"
+            elif record is not None:
+                run.state = UP_TO_DATE
+                run.outputs = dict(record["outputs"])
+                same = previous is not None and previous.get("key") == run.key
+                run.reason = "cached" if same else "cached (computed by another run; will be reused)"
+            else:
+                run.state, run.reason = WILL_RUN, self._why_changed(run, previous)
+        return runs
+
+    def _why_changed(self, run: StageRun, previous: dict | None) -> str:
+        if previous is None:
+            return "never run for this input"
+        material = self.key_material(run)
+        reasons = []
+        if previous.get("code") != material["code"]:
+            reasons.append("code changed")
+        old_params = previous.get("params", {})
+        changed = [f"{k}: {old_params.get(k)!r} -> {v!r}" for k, v in material["params"].items()
+                   if old_params.get(k) != v]
+        if changed:
+            reasons.append("params changed (" + "; ".join(changed) + ")")
+        if previous.get("backend") != material["backend"]:
+            reasons.append(f"backend {previous.get('backend')} -> {material['backend']}")
+        if previous.get("weights", {}) != material["weights"]:
+            reasons.append("weight files changed")
+        changed_inputs = [k for k, v in material["inputs"].items() if previous.get("inputs", {}).get(k) != v]
+        if changed_inputs:
+            reasons.append(f"input {', '.join(changed_inputs)} changed")
+        if not reasons:
+            reasons.append("outputs missing or corrupt in the store")
+        return "; ".join(reasons)
+
+    # ------------------------------------------------------------------ execution
+
+    def run(self, subjects: list[Subject]) -> Summary:
+        runs = self.plan(subjects)
+        todo = [r for r in runs if r.state == "pending"]
+        with self.store.shared_use():
+            bar = _progress(len(todo), self.progress)
+            try:
+                self._execute(todo, bar)
+            finally:
+                bar.close()
+        return Summary(runs)
+
+    def _execute(self, todo: list[StageRun], bar) -> None:
+        pending = list(todo)
+        futures: dict[Future, StageRun] = {}
+        with ThreadPoolExecutor(max_workers=self.jobs) as pool:
+            try:
+                while pending or futures:
+                    for run in list(pending):
+                        bad = [d for d in run.deps if d.state in (FAILED, SKIPPED)]
+                        if bad:
+                            run.state, run.reason = SKIPPED, f"upstream {bad[0].stage} {bad[0].state}"
+                            pending.remove(run)
+                            self._report(run, bar)
+                        elif all(d.state in (CACHED, RAN) for d in run.deps):
+                            pending.remove(run)
+                            futures[pool.submit(self._run_one, run)] = run
+                    if not futures:
+                        continue
+                    done, _ = wait(futures, return_when=FIRST_COMPLETED)
+                    for fut in done:
+                        run = futures.pop(fut)
+                        exc = fut.exception()
+                        if exc is not None:
+                            run.state, run.reason = FAILED, f"{type(exc).__name__}: {exc}"
+                        self._report(run, bar)
+            except BaseException:  # Ctrl-C: stop the running stages before the pool waits for them
+                for fut in futures:
+                    fut.cancel()
+                self._kill_children()
+                raise
+
+    def _report(self, run: StageRun, bar) -> None:
+        bar.update(1)
+        timing = f" in {run.wall_s:.1f} s" if run.state == RAN and run.wall_s is not None else ""
+        extra = f": {run.reason}" if run.reason and run.state != RAN else ""
+        log = f" (log: {run.log})" if run.state == FAILED and run.log else ""
+        bar.write(f"{run.label}: {run.state}{timing}{extra}{log}")
+
+    def _run_one(self, run: StageRun) -> None:
+        self._resolve_inputs(run)
+        sd = self.pipeline.stages[run.stage]
+        forced = run.stage in self.force
+        record = None if forced else self.store.get_record(run.key)
+        if record is None:
+            with self.store.key_lock(run.key):
+                record = None if forced else self.store.get_record(run.key)  # another process may have made it
+                if record is None:
+                    record = self._execute_stage(run)
+                    if record is None:
+                        return
+                    run.state = RAN
+        if run.state != RAN:
+            run.state, run.reason = CACHED, ""
+        run.outputs = dict(record["outputs"])
+        run.wall_s = record.get("wall_s")
+        run.peak_rss_mb = record.get("peak_rss_mb")
+        self._update_view(run, sd.backend, record)
+
+    def _execute_stage(self, run: StageRun) -> dict | None:
+        sd = self.pipeline.stages[run.stage]
+        staging = self.store.new_staging_dir(run.stage)
+        outputs = {o: staging / o for o in sd.outputs}
+        inputs = {k: self.store.object_path(v) for k, v in run.inputs.items()}
+        argv = sd.spec.argv(inputs, outputs, self.params[run.stage], sd.backend)
+        cmd = [sys.executable, "-m", sd.module, *argv]
+        log_dir = self.store.root / "runs" / run.subject.name / "logs"
+        log_dir.mkdir(parents=True, exist_ok=True)
+        run.log = log_dir / f"{run.stage}.log"
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(self.pipeline.path.parent), env.get("PYTHONPATH")]))
+        threads = str(max(1, (os.cpu_count() or 1) // self.jobs))
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            env.setdefault(var, threads)
+        t0 = time.perf_counter()
+        with open(run.log, "w") as log:
+            log.write("$ " + " ".join(cmd) + "\n")
+            log.flush()
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=self.pipeline.path.parent, env=env)
+            with self._lock:
+                self._procs.add(proc)
+            try:
+                _, status, rusage = os.wait4(proc.pid, 0)
+                proc.returncode = os.waitstatus_to_exitcode(status)
+            finally:
+                with self._lock:
+                    self._procs.discard(proc)
+        wall = time.perf_counter() - t0
+        run.wall_s, run.peak_rss_mb = wall, rusage.ru_maxrss / 1024.0
+        if proc.returncode != 0:
+            run.state = FAILED
+            run.reason = _error_line(run.log) or f"exit code {proc.returncode}"
+            return None
+        out_ids = {}
+        for name, path in outputs.items():
+            if not path.is_dir() or not any(path.rglob("*")):
+                run.state, run.reason = FAILED, f"stage wrote nothing to its output {name}"
+                return None
+            out_ids[name] = self.store.commit_dir(path)
+        record = {
+            **self.key_material(run),
+            "key": run.key,
+            "outputs": out_ids,
+            "wall_s": round(wall, 3),
+            "peak_rss_mb": round(run.peak_rss_mb, 1),
+            "versions": self.versions(),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        }
+        self.store.put_record(run.key, record)
+        try:
+            staging.rmdir()
+        except OSError:
+            pass
+        return record
+
+    def _update_view(self, run: StageRun, backend: str, record: dict) -> None:
+        view = self.store.root / "runs" / run.subject.name
+        for name, artifact_id in run.outputs.items():
+            link = view / run.stage / name
+            link.parent.mkdir(parents=True, exist_ok=True)
+            tmp = link.with_name(f".{name}.{os.getpid()}.{threading.get_ident()}")
+            tmp.unlink(missing_ok=True)
+            tmp.symlink_to(self.store.object_path(artifact_id))
+            os.replace(tmp, link)
+        entry = {k: record.get(k) for k in ("key", "module", "code", "params", "backend", "weights", "inputs",
+                                            "outputs", "wall_s", "peak_rss_mb", "versions")}
+        entry["status"] = run.state
+        with self._lock:
+            lock = read_lockfile(self.store, run.subject.name)
+            lock["schema"] = 1
+            lock.setdefault("input", {})[run.subject.kind] = {"path": str(run.subject.source),
+                                                              "id": run.subject.input_id}
+            lock.setdefault("stages", {})[run.stage] = entry
+            write_lockfile(self.store, run.subject.name, lock)
+
+    def versions(self) -> dict[str, str]:
+        if self._versions is None:
+            v = {"python": platform.python_version()}
+            for pkg in VERSIONED_PACKAGES:
+                try:
+                    v[pkg] = metadata.version(pkg)
+                except metadata.PackageNotFoundError:
+                    pass
+            self._versions = v
+        return self._versions
+
+    def _kill_children(self) -> None:
+        with self._lock:
+            procs = list(self._procs)
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except (subprocess.TimeoutExpired, ChildProcessError):
+                p.kill()
+
+
+# ---------------------------------------------------------------------- lockfiles
+
+def lockfile_path(store: Store, subject: str) -> Path:
+    return store.root / "runs" / subject / LOCK_NAME
+
+
+def read_lockfile(store: Store, subject: str) -> dict:
+    try:
+        data = yaml.safe_load(lockfile_path(store, subject).read_text())
+        return data if isinstance(data, dict) else {}
+    except (OSError, yaml.YAMLError):
+        return {}
+
+
+def write_lockfile(store: Store, subject: str, data: dict) -> None:
+    atomic_write_text(lockfile_path(store, subject), yaml.safe_dump(data, sort_keys=False))
+
+
+def referenced_ids(store: Store) -> set[str]:
+    """Artifact ids that some run's lockfile references (inputs and outputs)."""
+    ids: set[str] = set()
+    for lock_file in (store.root / "runs").glob(f"*/{LOCK_NAME}"):
+        data = read_lockfile(store, lock_file.parent.name)
+        for inp in (data.get("input") or {}).values():
+            if isinstance(inp, dict) and inp.get("id"):
+                ids.add(inp["id"])
+        for entry in (data.get("stages") or {}).values():
+            ids.update((entry.get("inputs") or {}).values())
+            ids.update((entry.get("outputs") or {}).values())
+    return ids
+
+
+# ---------------------------------------------------------------------- helpers
+
+def _hash_json(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _error_line(log: Path) -> str | None:
+    """The stage's own 'error: ...' line, or the last line of a traceback."""
+    try:
+        lines = [ln.strip() for ln in log.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return None
+    for ln in reversed(lines):
+        if ln.startswith("error:"):
+            return ln[len("error:"):].strip()
+    return lines[-1] if len(lines) > 1 else None
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def write(self, text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, enabled: bool | None):
+    if enabled is False or total == 0:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="stage", desc="stages", disable=None if enabled is None else not enabled,
+                file=sys.stderr, dynamic_ncols=True)
+
+
+__all__ = ["Scheduler", "Subject", "StageRun", "Summary", "HumanVDMError", "referenced_ids"]

@@ -1,0 +1,215 @@
+"""The scheduler: caching, invalidation, early cutoff, status, batch, failures, lockfiles."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from humanvdm_core.errors import ConfigError
+from humanvdm_core.scheduler import (
+    BLOCKED,
+    CACHED,
+    FAILED,
+    MAY_RUN,
+    NOT_IMPLEMENTED,
+    RAN,
+    SKIPPED,
+    UP_TO_DATE,
+    WILL_RUN,
+    Scheduler,
+    read_lockfile,
+)
+from tests.toyproject import ToyProject
+
+
+@pytest.fixture
+def toy(tmp_path) -> ToyProject:
+    return ToyProject(tmp_path)
+
+
+def states(summary_or_runs) -> dict[str, str]:
+    runs = getattr(summary_or_runs, "runs", summary_or_runs)
+    return {r.stage: r.state for r in runs}
+
+
+def test_second_run_is_all_cache_hits(toy):
+    subj = toy.subject("a", "hello world")
+    first = toy.scheduler().run([subj])
+    assert states(first) == {"shout": RAN, "measure": RAN, "report": RAN}
+    assert toy.ran() == ["shout", "measure", "report"]
+    second = toy.scheduler().run([subj])
+    assert states(second) == {"shout": CACHED, "measure": CACHED, "report": CACHED}
+    assert toy.ran() == []
+    assert [r.outputs for r in first.runs] == [r.outputs for r in second.runs]
+
+
+def test_param_change_reruns_that_stage_and_downstream_only_if_output_changed(toy):
+    subj = toy.subject("a", "x" * 25)  # len 25: bucket 10 -> 2
+    toy.scheduler().run([subj])
+    toy.ran()
+    # shout.times 1 -> 2: text changes (len 50 -> 5), so measure and report rerun
+    s = toy.scheduler(overrides={"shout": {"times": 2}}).run([subj])
+    assert states(s) == {"shout": RAN, "measure": RAN, "report": RAN}
+    assert toy.ran() == ["shout", "measure", "report"]
+    # measure.bucket 10 -> 11: measure reruns, 50 // 11 = 4 != 5, report reruns
+    s = toy.scheduler(overrides={"shout": {"times": 2}, "measure": {"bucket": 11}}).run([subj])
+    assert states(s) == {"shout": CACHED, "measure": RAN, "report": RAN}
+    # measure.bucket 11 -> 12: 50 // 12 = 4 again: same artifact id, report is a hit (early cutoff)
+    s = toy.scheduler(overrides={"shout": {"times": 2}, "measure": {"bucket": 12}}).run([subj])
+    assert states(s) == {"shout": CACHED, "measure": RAN, "report": CACHED}
+    assert toy.ran() == ["measure", "report", "measure"]
+
+
+def test_upstream_rerun_with_identical_output_stops_there(toy):
+    subj = toy.subject("a", "ALREADY UPPER")
+    toy.scheduler().run([subj])
+    toy.ran()
+    s = toy.scheduler(overrides={"shout": {"upper": True}}).run([subj])  # same bytes out
+    assert states(s) == {"shout": RAN, "measure": CACHED, "report": CACHED}
+    assert toy.ran() == ["shout"]
+
+
+def test_code_change_reruns_that_stage_only(toy):
+    from tests.toyproject import STAGES
+
+    subj = toy.subject("a", "some text here")
+    toy.scheduler().run([subj])
+    toy.ran()
+    toy.write_stage("measure", STAGES["measure"] + "\n# a harmless edit that still changes the code\n")
+    s = toy.scheduler().run([subj])
+    assert states(s) == {"shout": CACHED, "measure": RAN, "report": CACHED}
+    assert toy.ran() == ["measure"]
+
+
+def test_input_change_reruns_everything_downstream(toy):
+    toy.scheduler().run([toy.subject("a", "first")])
+    toy.ran()
+    s = toy.scheduler().run([toy.subject("a", "second, longer input text")])
+    assert states(s) == {"shout": RAN, "measure": RAN, "report": RAN}
+
+
+def test_status_explains_why(toy):
+    subj = toy.subject("a", "x" * 25)
+    st = states(toy.scheduler().status([subj]))
+    assert st == {"shout": WILL_RUN, "measure": MAY_RUN, "report": MAY_RUN}
+    toy.scheduler().run([subj])
+    runs = toy.scheduler(overrides={"measure": {"bucket": 5}}).status([subj])
+    by = {r.stage: r for r in runs}
+    assert by["shout"].state == UP_TO_DATE and by["shout"].reason == "cached"
+    assert by["measure"].state == WILL_RUN
+    assert "params changed (bucket: 10 -> 5)" in by["measure"].reason
+    assert by["report"].state == MAY_RUN and "measure" in by["report"].reason
+    assert toy.ran() == ["shout", "measure", "report"]  # status ran nothing
+
+
+def test_force_until_and_dry_status(toy):
+    subj = toy.subject("a", "abc")
+    s = toy.scheduler(until="measure").run([subj])
+    assert states(s) == {"shout": RAN, "measure": RAN}
+    toy.ran()
+    s = toy.scheduler(force={"shout"}).run([subj])
+    assert states(s) == {"shout": RAN, "measure": CACHED, "report": RAN}
+    assert toy.ran() == ["shout", "report"]
+
+
+def test_batch_failure_does_not_stop_others_and_is_reported(toy):
+    good, bad, bug = toy.subject("good", "fine"), toy.subject("bad", "FAIL me"), toy.subject("bug", "CRASH")
+    s = toy.scheduler(jobs=2).run([good, bad, bug])
+    by = {(r.subject.name, r.stage): r for r in s.runs}
+    assert by["good", "report"].state == RAN
+    assert by["bad", "shout"].state == FAILED
+    assert by["bad", "shout"].reason == "shout: this text cannot be shouted"
+    assert by["bad", "shout"].log.is_file()
+    assert by["bad", "measure"].state == SKIPPED and by["bad", "report"].state == SKIPPED
+    assert by["bug", "shout"].state == FAILED and "RuntimeError: a bug" in by["bug", "shout"].reason
+    assert "Traceback" in by["bug", "shout"].log.read_text()
+    assert not s.ok
+
+
+def test_parallel_jobs_overlap(toy):
+    subjects = [toy.subject(f"s{i}", f"text {i}") for i in range(2)]
+    toy.scheduler(jobs=2, overrides={"shout": {"sleep": 1.0}}).run(subjects)
+    (_, _, a0, a1), (_, _, b0, b1) = [r for r in toy.ledger() if r[0] == "shout"]
+    assert a0 < b1 and b0 < a1, "the two shout runs should have overlapped in time"
+
+
+def test_lockfile_records_provenance(toy):
+    subj = toy.subject("a", "hello")
+    toy.scheduler().run([subj])
+    lock = read_lockfile(toy.store, "a")
+    entry = lock["stages"]["measure"]
+    assert entry["params"] == {"bucket": 10}
+    assert entry["backend"] == "embedded"
+    assert entry["wall_s"] > 0 and entry["peak_rss_mb"] > 1
+    assert entry["inputs"]["src"] == lock["stages"]["shout"]["outputs"]["out"]
+    assert "python" in entry["versions"]
+    link = toy.store.root / "runs" / "a" / "report" / "out"
+    assert (link / "report.txt").read_text() == "size=0"
+
+
+def test_not_implemented_stage_blocks_downstream(tmp_path):
+    from tests.toyproject import PIPELINE, STAGES
+
+    text = PIPELINE.replace("{pkg}.measure", "{pkg}.missing_module")
+    toy = ToyProject(tmp_path, pipeline_text=text, stages={k: v for k, v in STAGES.items() if k != "measure"})
+    s = toy.scheduler().run([toy.subject("a", "abc")])
+    assert states(s) == {"shout": RAN, "measure": NOT_IMPLEMENTED, "report": BLOCKED}
+    assert s.ok
+
+
+def test_unknown_set_params_fail_before_running(toy):
+    with pytest.raises(ConfigError, match="stage measure: unknown param"):
+        toy.scheduler(overrides={"measure": {"nope": 1}})
+    with pytest.raises(ConfigError, match="measure.bucket"):
+        toy.scheduler(overrides={"measure": {"bucket": "ten"}})
+    with pytest.raises(ConfigError, match="unknown stage"):
+        toy.scheduler(overrides={"nostage": {"x": 1}})
+    assert toy.ran() == []
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda t: t + "\n  measure:\n    module: x\n    outputs: [y]\n", "duplicate key 'measure'"),
+    (lambda t: t.replace("{src: $text}", "{src: report.out}"), "cycle in pipeline: shout -> report -> measure -> shout"),
+    (lambda t: t.replace("{src: shout.out}", "{src: shout.nothing}"), "stage measure: input src refers to shout.nothing"),
+    (lambda t: t.replace("{src: shout.out}", "{src: ghost.out}"), "stage measure: input src refers to unknown stage"),
+    (lambda t: t.replace("{src: $text}", "{src: $photo}"), "stage shout: input src refers to unknown run input"),
+    (lambda t: t.replace("{bucket: 10}", "{buckets: 10}"), "stage measure: unknown param"),
+    (lambda t: t.replace("outputs: [out]\n    params", "outputs: [out, out]\n    params"), "stage measure: duplicate outputs"),
+    (lambda t: t.replace("    params: {bucket: 10}", "    param: {bucket: 10}"), "stage measure: unknown keys"),
+    (lambda t: t.replace("stages:", "stages: [\n"), "invalid YAML"),
+])
+def test_invalid_pipelines_fail_naming_the_problem(tmp_path, edit, message):
+    from humanvdm_core.pipeline import load_pipeline
+    from tests.toyproject import PIPELINE
+
+    toy = ToyProject(tmp_path)
+    toy.pipeline_path.write_text(edit(PIPELINE.format(pkg=toy.pkg)))
+    with pytest.raises(ConfigError, match=message.replace("$", r"\$").replace("[", r"\[")):
+        load_pipeline(toy.pipeline_path)
+
+
+def test_real_pipeline_yaml_is_valid():
+    from humanvdm_core.cli import REPO_ROOT
+    from humanvdm_core.pipeline import load_pipeline
+
+    pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
+    assert {"render-training-orbits", "upscale", "interpolate"} <= {n for n, s in pipe.stages.items() if s.implemented}
+    order = pipe.order()
+    assert order.index("upscale") < order.index("interpolate") < order.index("splat-optimize")
+    doc = yaml.safe_load((REPO_ROOT / "pipeline.yaml").read_text())
+    assert set(doc["inputs"]) == {"photo", "scan"}
+
+
+def test_photo_run_chooses_diffuse_scan_run_chooses_renderer():
+    from humanvdm_core.cli import REPO_ROOT
+    from humanvdm_core.pipeline import load_pipeline
+    from humanvdm_core.scheduler import Subject
+    from humanvdm_core.store import Store
+
+    pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
+    sched = Scheduler(pipe, Store.__new__(Store))
+    photo = {r.stage: r for r in sched.plan([Subject("p", "photo", REPO_ROOT)])}
+    scan = {r.stage: r for r in sched.plan([Subject("s", "scan", REPO_ROOT)])}
+    assert str(photo["upscale"].chosen["frames"]) == "diffuse.orbit"
+    assert str(scan["upscale"].chosen["frames"]) == "render-training-orbits.orbit"
+    assert "render-training-orbits" not in photo and "diffuse" not in scan
