@@ -40,15 +40,15 @@ def tree_id(entries: Iterable[tuple[str, str]]) -> str:
 
 def list_files(root: str | os.PathLike) -> list[str]:
     """Sorted relative posix paths of the regular files under ``root`` (links are refused)."""
-    root = Path(root)
+    root = os.fspath(root)
     out = []
     for dirpath, dirnames, filenames in os.walk(root):
-        dirnames.sort()
+        rel_dir = os.path.relpath(dirpath, root)
         for name in filenames:
-            p = Path(dirpath) / name
-            if p.is_symlink():
-                raise ValueError(f"symbolic links are not allowed in artifacts: {p}")
-            out.append(p.relative_to(root).as_posix())
+            full = os.path.join(dirpath, name)
+            if os.path.islink(full):
+                raise ValueError(f"symbolic links are not allowed in artifacts: {full}")
+            out.append(name if rel_dir == "." else f"{rel_dir}/{name}".replace(os.sep, "/"))
     return sorted(out)
 
 

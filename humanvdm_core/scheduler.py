@@ -41,6 +41,8 @@ from humanvdm_core.pipeline import Pipeline, Ref, code_fingerprint
 from humanvdm_core.store import Store
 
 LOCK_NAME = "humanvdm.lock"
+_YamlLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when the wheel has it
+_YamlDumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 VERSIONED_PACKAGES = ("numpy", "torch", "opencv-contrib-python-headless", "openimageio", "moderngl", "trimesh")
 
 # Stage-run states.
@@ -124,8 +126,11 @@ class Scheduler:
         self.params = {s: pipeline.resolve_params(s, self.overrides.get(s)) for s in pipeline.stages}
         self._fingerprints: dict[str, str] = {}
         self._lock = threading.Lock()
+        self._fp_lock = threading.Lock()
         self._procs: set[subprocess.Popen] = set()
         self._versions: dict[str, str] | None = None
+        self._lockfiles: dict[str, dict] = {}
+        self._dirty: set[str] = set()
 
     # ------------------------------------------------------------------ planning
 
@@ -163,9 +168,10 @@ class Scheduler:
         return runs
 
     def fingerprint(self, stage: str) -> str:
-        if stage not in self._fingerprints:
-            self._fingerprints[stage] = code_fingerprint(self.pipeline.stages[stage].module)
-        return self._fingerprints[stage]
+        with self._fp_lock:  # ast.parse is not thread-safe in CPython 3.11
+            if stage not in self._fingerprints:
+                self._fingerprints[stage] = code_fingerprint(self.pipeline.stages[stage].module)
+            return self._fingerprints[stage]
 
     def key_material(self, run: StageRun) -> dict[str, Any]:
         sd = self.pipeline.stages[run.stage]
@@ -262,6 +268,8 @@ class Scheduler:
                 self._execute(todo, bar)
             finally:
                 bar.close()
+                with self._lock:
+                    self._flush_lockfiles()
         return Summary(runs)
 
     def _execute(self, todo: list[StageRun], bar) -> None:
@@ -296,6 +304,8 @@ class Scheduler:
 
     def _report(self, run: StageRun, bar) -> None:
         bar.update(1)
+        if run.state == CACHED:
+            return
         timing = f" in {run.wall_s:.1f} s" if run.state == RAN and run.wall_s is not None else ""
         extra = f": {run.reason}" if run.reason and run.state != RAN else ""
         log = f" (log: {run.log})" if run.state == FAILED and run.log else ""
@@ -381,21 +391,33 @@ class Scheduler:
         view = self.store.root / "runs" / run.subject.name
         for name, artifact_id in run.outputs.items():
             link = view / run.stage / name
+            target = self.store.object_path(artifact_id)
+            if link.is_symlink() and os.readlink(link) == str(target):
+                continue
             link.parent.mkdir(parents=True, exist_ok=True)
             tmp = link.with_name(f".{name}.{os.getpid()}.{threading.get_ident()}")
             tmp.unlink(missing_ok=True)
-            tmp.symlink_to(self.store.object_path(artifact_id))
+            tmp.symlink_to(target)
             os.replace(tmp, link)
         entry = {k: record.get(k) for k in ("key", "module", "code", "params", "backend", "weights", "inputs",
                                             "outputs", "wall_s", "peak_rss_mb", "versions")}
         entry["status"] = run.state
         with self._lock:
-            lock = read_lockfile(self.store, run.subject.name)
+            lock = self._lockfiles.get(run.subject.name)
+            if lock is None:
+                lock = self._lockfiles[run.subject.name] = read_lockfile(self.store, run.subject.name)
             lock["schema"] = 1
             lock.setdefault("input", {})[run.subject.kind] = {"path": str(run.subject.source),
                                                               "id": run.subject.input_id}
             lock.setdefault("stages", {})[run.stage] = entry
-            write_lockfile(self.store, run.subject.name, lock)
+            self._dirty.add(run.subject.name)
+            if run.state == RAN:  # new work is on record at once; cache hits are written at the end
+                self._flush_lockfiles()
+
+    def _flush_lockfiles(self) -> None:
+        for name in sorted(self._dirty):
+            write_lockfile(self.store, name, self._lockfiles[name])
+        self._dirty.clear()
 
     def versions(self) -> dict[str, str]:
         if self._versions is None:
@@ -428,14 +450,14 @@ def lockfile_path(store: Store, subject: str) -> Path:
 
 def read_lockfile(store: Store, subject: str) -> dict:
     try:
-        data = yaml.safe_load(lockfile_path(store, subject).read_text())
+        data = yaml.load(lockfile_path(store, subject).read_text(), Loader=_YamlLoader)
         return data if isinstance(data, dict) else {}
     except (OSError, yaml.YAMLError):
         return {}
 
 
 def write_lockfile(store: Store, subject: str, data: dict) -> None:
-    atomic_write_text(lockfile_path(store, subject), yaml.safe_dump(data, sort_keys=False))
+    atomic_write_text(lockfile_path(store, subject), yaml.dump(data, Dumper=_YamlDumper, sort_keys=False))
 
 
 def referenced_ids(store: Store) -> set[str]:

@@ -85,8 +85,9 @@ class Store:
         try:
             if list_files(path) != sorted(files):
                 return False
+            base = str(path)
             for rel, digest in files.items():
-                if self.stat_cache.file_hash(path / rel, trust_cache) != digest:
+                if self.stat_cache.file_hash(f"{base}/{rel}", trust_cache) != digest:
                     return False
         except (OSError, ValueError):
             return False
