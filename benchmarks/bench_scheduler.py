@@ -27,6 +27,7 @@ from humanvdm_core.scheduler import CACHED, Scheduler
 from humanvdm_core.store import Store
 from tests.toyproject import STAGES, ToyProject
 
+
 def _wide_stages() -> dict[str, str]:
     out = {}
     for name, body in STAGES.items():

@@ -47,10 +47,13 @@ def orbit_position(azimuth_deg, elevation_deg, radius) -> np.ndarray:
     )[..., None]
 
 
-def look_at(eye: np.ndarray, target: np.ndarray = np.zeros(3), up: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
-    """Camera-to-world 4x4 (OpenCV axes) for a camera at ``eye`` looking at ``target``."""
+def look_at(eye: np.ndarray, target: np.ndarray | None = None, up: np.ndarray | None = None) -> np.ndarray:
+    """Camera-to-world 4x4 (OpenCV axes) for a camera at ``eye`` looking at ``target`` (default: the
+    origin) with ``up`` (default +Y) pointing up in the image."""
     eye = np.asarray(eye, dtype=np.float64)
-    forward = np.asarray(target, dtype=np.float64) - eye
+    target = np.zeros(3) if target is None else np.asarray(target, dtype=np.float64)
+    up = np.array([0.0, 1.0, 0.0]) if up is None else np.asarray(up, dtype=np.float64)
+    forward = target - eye
     forward /= np.linalg.norm(forward)
     right = np.cross(forward, up)
     right /= np.linalg.norm(right)

@@ -102,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     except HumanVDMError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into `head` and the like
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print("interrupted: running stages were stopped; the store holds only complete artifacts", file=sys.stderr)
         return 130

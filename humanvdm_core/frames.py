@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from humanvdm_core.cameras import Cameras
-from humanvdm_core.io import read_exr, write_exr
+from humanvdm_core.io import EXR_COLORSPACE, read_exr, write_exr
 
 FRAMES_DIR = "frames"
 CAMERAS_FILE = "cameras.npz"
@@ -42,12 +42,18 @@ def write_frames(
     cameras: Cameras | None,
     attrs: dict[str, str] | None = None,
     layer: str = FRAMES_DIR,
+    colorspace: str | None = None,
 ) -> int:
-    """Write frames (each (H, W, C) float) as ``layer/NNNN.exr`` and the cameras; returns the count."""
+    """Write frames (each (H, W, C) float) as ``layer/NNNN.exr`` and the cameras; returns the count.
+
+    The colour space defaults to sRGB for the ``frames`` layer and ``Raw`` (data, not colour) for
+    the others (depth, normals).
+    """
     root = Path(root)
+    space = colorspace or (EXR_COLORSPACE if layer == FRAMES_DIR else "Raw")
     n = 0
     for i, frame in enumerate(frames):
-        write_exr(root / layer / frame_name(i), frame, attrs={**(attrs or {}), "frame_index": i})
+        write_exr(root / layer / frame_name(i), frame, attrs={**(attrs or {}), "frame_index": i}, colorspace=space)
         n += 1
     if cameras is not None:
         if len(cameras) != n:

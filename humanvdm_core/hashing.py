@@ -42,7 +42,7 @@ def list_files(root: str | os.PathLike) -> list[str]:
     """Sorted relative posix paths of the regular files under ``root`` (links are refused)."""
     root = os.fspath(root)
     out = []
-    for dirpath, dirnames, filenames in os.walk(root):
+    for dirpath, _dirnames, filenames in os.walk(root):
         rel_dir = os.path.relpath(dirpath, root)
         for name in filenames:
             full = os.path.join(dirpath, name)

@@ -1,7 +1,7 @@
 """Turning what a user passes on the command line into subjects (run inputs) in the store.
 
 - an image file (.png .jpg .jpeg .webp .bmp .tif .tiff .exr) -> a ``photo`` subject;
-- a mesh file (.obj with its .mtl and textures, .glb, .gltf) or a folder holding one -> a ``scan``;
+- a mesh file (.obj with its .mtl and textures, .glb, .gltf, .ply) or a folder holding one -> a ``scan``;
 - a folder of images -> one ``photo`` subject per image (``*_mask.*`` files are skipped);
 - a folder of scan folders (the THuman2.0 layout ``NNNN/NNNN.obj``) -> one ``scan`` per folder.
 
@@ -18,7 +18,7 @@ from humanvdm_core.scheduler import Subject
 from humanvdm_core.store import Store
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".exr"}
-MESH_SUFFIXES = {".obj", ".glb", ".gltf"}
+MESH_SUFFIXES = {".obj", ".glb", ".gltf", ".ply"}
 
 
 def _meshes_in(folder: Path) -> list[Path]:

@@ -115,7 +115,7 @@ class Scheduler:
         self.until = until
         self.jobs = max(1, int(jobs))
         self.progress = progress
-        for stage, values in self.overrides.items():
+        for stage in self.overrides:
             if stage not in pipeline.stages:
                 raise ConfigError(f"--set: unknown stage {stage!r}; stages: {list(pipeline.stages)}")
             if pipeline.stages[stage].spec is None:
@@ -214,11 +214,16 @@ class Scheduler:
             if run.state in (NOT_IMPLEMENTED, BLOCKED):
                 continue
             pending = [d.stage for d in run.deps if d.state != UP_TO_DATE]
-            if pending:
-                run.state = MAY_RUN
-                run.reason = (f"after {', '.join(pending)}: reruns only if its output changes"
-                              if all(d.state in (WILL_RUN, MAY_RUN) for d in run.deps if d.stage in pending)
-                              else f"needs {', '.join(pending)}")
+            if pending:  # input ids unknown until upstream runs; own changes still tell
+                previous = locks[run.subject.name].get("stages", {}).get(run.stage)
+                own = self._why_changed(run, previous, with_inputs=False)
+                if run.stage in self.force:
+                    run.state, run.reason = WILL_RUN, "forced (--force)"
+                elif own:
+                    run.state, run.reason = WILL_RUN, own
+                else:
+                    run.state = MAY_RUN
+                    run.reason = f"after {', '.join(pending)}: reruns only if its input changes"
                 continue
             self._resolve_inputs(run)
             record = self.store.get_record(run.key)
@@ -234,10 +239,11 @@ class Scheduler:
                 run.state, run.reason = WILL_RUN, self._why_changed(run, previous)
         return runs
 
-    def _why_changed(self, run: StageRun, previous: dict | None) -> str:
+    def _why_changed(self, run: StageRun, previous: dict | None, with_inputs: bool = True) -> str:
+        """Why the key differs from the previous run's; without inputs, '' when only they may differ."""
         if previous is None:
             return "never run for this input"
-        material = self.key_material(run)
+        material = self.key_material(run) if with_inputs else {**self.key_material(run), "inputs": {}}
         reasons = []
         if previous.get("code") != material["code"]:
             reasons.append("code changed")
@@ -253,7 +259,7 @@ class Scheduler:
         changed_inputs = [k for k, v in material["inputs"].items() if previous.get("inputs", {}).get(k) != v]
         if changed_inputs:
             reasons.append(f"input {', '.join(changed_inputs)} changed")
-        if not reasons:
+        if not reasons and with_inputs:
             reasons.append("outputs missing or corrupt in the store")
         return "; ".join(reasons)
 

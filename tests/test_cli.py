@@ -46,7 +46,7 @@ def test_run_status_show_and_dry_run(toy):
     again = cli(toy, "run", inp, "--kind", "text")
     assert "0 stage run(s) ran, 3 cached" in again.stdout
     st = cli(toy, "status", inp, "--kind", "text", "--set", "measure.bucket=3")
-    assert "params changed (bucket: 10 -> 3)" in st.stdout and "reruns only if its output changes" in st.stdout
+    assert "params changed (bucket: 10 -> 3)" in st.stdout and "reruns only if its input changes" in st.stdout
     show = cli(toy, "show", "a")
     assert show.returncode == 0 and "measure" in show.stdout
     dag = cli(toy, "dag")

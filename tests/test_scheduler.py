@@ -91,7 +91,7 @@ def test_input_change_reruns_everything_downstream(toy):
 def test_status_explains_why(toy):
     subj = toy.subject("a", "x" * 25)
     st = states(toy.scheduler().status([subj]))
-    assert st == {"shout": WILL_RUN, "measure": MAY_RUN, "report": MAY_RUN}
+    assert st == {"shout": WILL_RUN, "measure": WILL_RUN, "report": WILL_RUN}
     toy.scheduler().run([subj])
     runs = toy.scheduler(overrides={"measure": {"bucket": 5}}).status([subj])
     by = {r.stage: r for r in runs}
