@@ -29,6 +29,8 @@ $(STAMP): pyproject.toml
 	  fi; \
 	fi
 	@$(PY) -m pip install -q -e ".[dev]"
+	@# mediapipe's metadata pins numpy<2 and a second OpenCV; it runs fine on ours (see pyproject.toml).
+	@$(PY) -m pip install -q --no-deps "mediapipe==0.10.21"
 	@$(PY) -m humanvdm_core.doctor
 	@touch $(STAMP)
 

@@ -1,0 +1,298 @@
+"""Person perception: photo loading (formats, EXIF, sizes, corrupt files) and person detection.
+
+Loading tests build their images in code and always run. Detection tests need MediaPipe (skipped
+when it is not installed); the ones on real photos need ../shared/fixtures (skipped when absent).
+Measured on the fixtures (see benchmarks/bench_perception.py): ryota's segmentation mask has
+IoU 0.988 with its ground-truth mask; the test floor is 0.95.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import tracemalloc
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image, ImageOps
+
+from humanvdm_core.errors import InputError
+from humanvdm_core.io import write_exr
+from humanvdm_core.perception import COCO17_NAMES, Photo, detect_person, load_photo
+from humanvdm_core.perception import image as image_module
+from humanvdm_core.perception.image import MAX_SIDE, srgb_encode
+
+cv2.setNumThreads(1)
+
+PHOTOS = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "photos"
+IDX = {n: i for i, n in enumerate(COCO17_NAMES)}
+
+
+def _pattern(h: int, w: int) -> np.ndarray:
+    """An asymmetric uint8 RGB test image (gradients + a corner block) so any flip/rotation shows."""
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.stack([x * 255 // max(1, w - 1), y * 255 // max(1, h - 1), (x + 2 * y) % 256], axis=2)
+    img[: h // 4, : w // 5] = (255, 255, 0)
+    return img.astype(np.uint8)
+
+
+def _write_rgb(path: Path, rgb: np.ndarray) -> Path:
+    cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def _photo(rgb: np.ndarray, name: str = "synthetic.png") -> Photo:
+    rgb = np.ascontiguousarray(rgb, np.float32)
+    return Photo(rgb=rgb, alpha=None, path=Path(name), original_size=(rgb.shape[1], rgb.shape[0]))
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def test_load_png_rgb_float(tmp_path):
+    img = _pattern(160, 200)
+    photo = load_photo(_write_rgb(tmp_path / "a.png", img))
+    assert photo.rgb.dtype == np.float32 and photo.rgb.shape == (160, 200, 3)
+    assert photo.alpha is None and photo.original_size == (200, 160) and photo.scale == 1.0
+    np.testing.assert_allclose(photo.rgb, img / 255.0, atol=1e-6)
+
+
+def test_load_grayscale_and_16bit(tmp_path):
+    gray = _pattern(150, 180)[:, :, 0]
+    cv2.imwrite(str(tmp_path / "g.png"), gray)
+    photo = load_photo(tmp_path / "g.png")
+    assert photo.rgb.shape == (150, 180, 3)
+    np.testing.assert_allclose(photo.rgb[:, :, 1], gray / 255.0, atol=1e-6)
+    deep = (np.arange(150 * 180 * 3, dtype=np.uint32).reshape(150, 180, 3) * 7 % 65536).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "d.png"), deep[:, :, ::-1])
+    np.testing.assert_allclose(load_photo(tmp_path / "d.png").rgb, deep / 65535.0, atol=1e-6)
+
+
+def test_load_rgba_keeps_alpha_and_straight_colour(tmp_path):
+    rgba = np.zeros((140, 160, 4), np.uint8)
+    rgba[..., 0] = 200
+    rgba[..., 3] = np.linspace(0, 255, 160).astype(np.uint8)[None]
+    cv2.imwrite(str(tmp_path / "a.png"), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA))
+    photo = load_photo(tmp_path / "a.png")
+    np.testing.assert_allclose(photo.alpha, rgba[..., 3] / 255.0, atol=1e-6)
+    np.testing.assert_allclose(photo.rgb[..., 0], 200 / 255.0, atol=1e-6)  # not premultiplied by the loader
+    gray_alpha = np.zeros((140, 160, 2), np.uint8)
+    gray_alpha[..., 0], gray_alpha[:, 80:, 1] = 90, 255
+    Image.fromarray(gray_alpha, "LA").save(tmp_path / "la.png")
+    la = load_photo(tmp_path / "la.png")
+    assert la.rgb.shape == (140, 160, 3) and abs(float(la.alpha.mean()) - 0.5) < 1e-6
+    np.testing.assert_allclose(la.rgb, 90 / 255.0, atol=1e-6)
+
+    # EXR stores premultiplied colour: it is un-premultiplied; a linear EXR is sRGB-encoded.
+    premult = np.zeros((130, 140, 4), np.float32)
+    premult[..., 0], premult[..., 3] = 0.25, 0.5
+    write_exr(tmp_path / "p.exr", premult)  # the project's EXRs say sRGB in their header
+    p = load_photo(tmp_path / "p.exr")
+    np.testing.assert_allclose(p.rgb[..., 0], 0.5, atol=1e-3)
+    np.testing.assert_allclose(p.alpha, 0.5, atol=1e-3)
+    write_exr(tmp_path / "lin.exr", np.full((130, 140, 3), 0.2, np.float32), colorspace="lin_rec709")
+    np.testing.assert_allclose(load_photo(tmp_path / "lin.exr").rgb, srgb_encode(np.float32(0.2)), atol=2e-3)
+
+
+@pytest.mark.parametrize("suffix", [".webp", ".tif", ".jpg"])
+def test_load_other_formats(tmp_path, suffix):
+    img = _pattern(140, 150)
+    Image.fromarray(img).save(tmp_path / f"x{suffix}", **({"lossless": True} if suffix == ".webp" else {}))
+    photo = load_photo(tmp_path / f"x{suffix}")
+    tol = 0.08 if suffix == ".jpg" else 1e-6
+    assert np.mean(np.abs(photo.rgb - img / 255.0)) < tol
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_orientation_matches_pillow(tmp_path, orientation):
+    stored = Image.fromarray(_pattern(140, 200))
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    stored.save(tmp_path / "o.jpg", quality=95, exif=exif)
+    expected = np.asarray(ImageOps.exif_transpose(Image.open(tmp_path / "o.jpg")).convert("RGB")) / 255.0
+    photo = load_photo(tmp_path / "o.jpg")
+    assert photo.rgb.shape == expected.shape
+    assert photo.original_size == (expected.shape[1], expected.shape[0])
+    assert np.mean(np.abs(photo.rgb - expected)) < 0.01
+
+
+def test_too_small_names_size_and_minimum(tmp_path):
+    path = _write_rgb(tmp_path / "tiny.png", _pattern(50, 50))
+    with pytest.raises(InputError, match=r"tiny\.png is too small: 50x50 px.*at least 128 px"):
+        load_photo(path)
+
+
+def test_corrupt_and_missing_files(tmp_path):
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    with pytest.raises(InputError, match=r"cannot read broken\.png"):
+        load_photo(bad)
+    good = tmp_path / "whole.jpg"
+    Image.fromarray(_pattern(300, 300)).save(good, quality=90)
+    cut = tmp_path / "cut.jpg"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(InputError, match=r"cannot read cut\.jpg: the file is truncated or corrupt"):
+        load_photo(cut)
+    with pytest.raises(InputError, match="photo not found"):
+        load_photo(tmp_path / "nope.png")
+
+
+def test_huge_photo_is_downscaled_while_decoding(tmp_path):
+    # 12,000 x 3,000 px: decoding it whole as float RGB would need 432 MB; strip-wise it stays small.
+    img = np.zeros((3000, 12000), np.uint8)
+    img[:, 6000:] = 200
+    path = tmp_path / "huge.jpg"
+    cv2.imwrite(str(path), img)
+    del img
+    tracemalloc.start()
+    try:
+        photo = load_photo(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert photo.rgb.shape == (1500, 6000, 3) and max(photo.rgb.shape) <= MAX_SIDE
+    assert photo.original_size == (12000, 3000) and photo.scale == 0.5
+    assert "downscaled by 2" in photo.notes[0]
+    assert abs(photo.rgb[700, 4000, 0] - 200 / 255) < 0.02 and photo.rgb[700, 1000, 0] < 0.02
+    assert peak < 200e6, f"peak {peak / 1e6:.0f} MB"  # measured: 144 MB
+
+
+def test_absurd_header_refused_before_decoding(tmp_path, monkeypatch):
+    # A PNG whose header claims 30000 x 30000 px (900 megapixels) and holds almost no pixel data.
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", 30000, 30000, 8, 2, 0, 0, 0)
+    path = tmp_path / "bomb.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+                     + chunk(b"IEND", b""))
+    with pytest.raises(InputError, match=r"bomb\.png"):  # OpenImageIO itself refuses this header
+        load_photo(path)
+    # Our own limit, checked on the header before decoding (lowered here to keep the file small).
+    monkeypatch.setattr(image_module, "MAX_FILE_PIXELS", 200 * 150)
+    big = _write_rgb(tmp_path / "big.png", _pattern(160, 200))
+    with pytest.raises(InputError, match=r"big\.png is too large: 200x160 px"):
+        load_photo(big)
+
+
+# ----------------------------------------------------------------------------- detection (MediaPipe)
+
+def _has_mediapipe() -> bool:
+    try:
+        import mediapipe  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+needs_mediapipe = pytest.mark.skipif(not _has_mediapipe(), reason="mediapipe is not installed")
+needs_photos = pytest.mark.skipif(not PHOTOS.is_dir(), reason=f"fixtures not present at {PHOTOS}")
+
+
+@pytest.fixture(scope="module")
+def ryota() -> Photo:
+    if not PHOTOS.is_dir():
+        pytest.skip(f"fixtures not present at {PHOTOS}")
+    return load_photo(PHOTOS / "pifu_ryota.png")
+
+
+@pytest.fixture(scope="module")
+def offline():
+    """Fail loudly if anything tries to reach the network or download a MediaPipe model."""
+    mp = pytest.MonkeyPatch()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("perception tried to use the network")
+
+    mp.setattr(socket.socket, "connect", refuse)
+    mp.setattr(socket, "create_connection", refuse)
+    if _has_mediapipe():
+        from mediapipe.python.solutions import download_utils
+
+        mp.setattr(download_utils, "download_oss_model", refuse)
+    yield
+    mp.undo()
+
+
+def _assert_plausible(det, width: int) -> None:
+    k, conf = det.keypoints, det.confidences
+    for name in ("nose", "left_shoulder", "right_shoulder", "left_hip", "right_hip"):
+        assert conf[IDX[name]] >= 0.5, name
+    assert k[IDX["nose"], 1] < k[IDX["left_hip"], 1] and k[IDX["nose"], 1] < k[IDX["right_hip"], 1]
+    # Frontal photo: the person's left shoulder is on the image's right.
+    assert k[IDX["left_shoulder"], 0] > k[IDX["right_shoulder"], 0]
+    assert k[IDX["left_hip"], 0] > k[IDX["right_hip"], 0]
+    assert np.all((k[:, 0] >= 0) & (k[:, 0] < width))
+
+
+@needs_mediapipe
+def test_ryota_mask_and_keypoints(ryota, offline):
+    det = detect_person(ryota)
+    gt = cv2.imread(str(PHOTOS / "pifu_ryota_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    fg = det.mask > 0.5
+    iou = (fg & gt).sum() / (fg | gt).sum()
+    assert iou >= 0.95, f"mask IoU {iou:.3f}"
+    assert det.mask_source == "segmentation" and det.mask.shape == (512, 512) and det.mask.dtype == np.float32
+    assert det.keypoints.shape == (17, 2) and det.confidences.shape == (17,)
+    assert det.num_people == 1 and det.missing == [] and det.warnings == []
+    _assert_plausible(det, ryota.width)
+    x0, y0, x1, y1 = det.bbox
+    assert x0 < det.keypoints[:, 0].min() and det.keypoints[:, 0].max() < x1 and y0 < det.keypoints[:, 1].min()
+
+
+@needs_mediapipe
+@needs_photos
+def test_rgba_cutout_uses_alpha(offline):
+    photo = load_photo(PHOTOS / "sith_014_rgba.png")
+    det = detect_person(photo)
+    assert det.mask_source == "alpha"
+    np.testing.assert_array_equal(det.mask, photo.alpha)
+    _assert_plausible(det, photo.width)
+
+
+@needs_mediapipe
+def test_blank_image_has_no_person(offline):
+    with pytest.raises(InputError, match=r"no person found in blank\.png"):
+        detect_person(_photo(np.full((256, 256, 3), 0.5), "blank.png"))
+
+
+@needs_mediapipe
+def test_two_people_warn_or_refuse(ryota, offline):
+    two = _photo(np.concatenate([ryota.rgb, ryota.rgb[:, ::-1]], axis=1), "two.png")
+    det = detect_person(two)
+    assert det.num_people == 2
+    assert any("shows 2 people; using the largest one only" in w for w in det.warnings)
+    assert det.mask[:, two.width // 2:].max() == 0  # the mask keeps one person only
+    with pytest.raises(InputError, match=r"two\.png shows 2 people"):
+        detect_person(two, refuse_multiple=True)
+
+
+@needs_mediapipe
+def test_body_cut_off(ryota, offline):
+    with pytest.raises(InputError, match=r"left hip, right hip outside the photo \(cut off by the frame\)"):
+        detect_person(_photo(ryota.rgb[:230], "waist.png"))  # cropped just above the waist
+    det = detect_person(_photo(ryota.rgb[:380], "knees.png"))  # cropped below the knees: goes on
+    assert {"left_ankle", "right_ankle"} <= set(det.outside)
+    assert det.confidences[IDX["left_ankle"]] == 0 and det.confidences[IDX["right_ankle"]] == 0
+    assert any("cut off by the frame): left ankle, right ankle" in w for w in det.warnings)
+
+
+@needs_mediapipe
+@needs_photos
+def test_grayscale_and_exif_rotated_photos(tmp_path, offline):
+    rgb8 = np.asarray(Image.open(PHOTOS / "pifu_ryota.png").convert("RGB"))
+    gray = tmp_path / "gray.png"
+    Image.fromarray(rgb8).convert("L").save(gray)
+    det = detect_person(gray)
+    _assert_plausible(det, 512)
+    # Stored turned 90 degrees counter-clockwise, with EXIF orientation 6 ("turn 90 clockwise").
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(np.rot90(rgb8, k=1).copy()).save(tmp_path / "turned.jpg", quality=92, exif=exif)
+    photo = load_photo(tmp_path / "turned.jpg")
+    assert photo.rgb.shape == (512, 512, 3)
+    assert np.mean(np.abs(photo.rgb - rgb8 / 255.0)) < 0.02
+    _assert_plausible(detect_person(photo), 512)
