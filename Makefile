@@ -45,7 +45,7 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 bench: setup
-	$(PY) -m benchmarks.run $(ARGS)
+	$(PY) -m benchmarks.run $(BENCH)
 
 doctor: setup
 	$(PY) -m humanvdm_core.doctor

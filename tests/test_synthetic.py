@@ -1,0 +1,299 @@
+"""Synthetic subjects (humanvdm_core.synthetic): meshes, pose semantics, texture layout, determinism,
+files that load through trimesh and humanvdm_core.scans.
+
+Needs the ``anny`` package (skipped otherwise) and its warm model cache (see humanvdm_core.body).
+The module fixture builds one subject per pose (about a second each).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytestmark = pytest.mark.slow
+
+pytest.importorskip("anny", reason="the 'anny' package is not installed (pip install --no-deps anny roma safetensors)")
+
+from humanvdm_core.body import BodyParams  # noqa: E402
+from humanvdm_core.body.model import COCO17_NAMES  # noqa: E402
+from humanvdm_core.errors import ConfigError  # noqa: E402
+from humanvdm_core.io import read_npz  # noqa: E402
+from humanvdm_core.synthetic import (  # noqa: E402
+    HAIR_COLORS,
+    POSES,
+    SKIN_TONES,
+    TEXTURE_SIZE,
+    TRUTH_SCHEMA,
+    TRUTH_VERSION,
+    SubjectSpec,
+    body_model,
+    make_subject,
+    random_specs,
+)
+
+KP = {name: i for i, name in enumerate(COCO17_NAMES)}
+FILES = ("albedo.png", "subject.mtl", "subject.obj", "truth.npz")
+
+
+def spec_for(pose: str) -> SubjectSpec:
+    # blonde hair on brown skin: hair, skin, lips and the dark face features all differ by colour
+    return SubjectSpec(pose=pose, hair_color=HAIR_COLORS["blonde"], skin_tone=SKIN_TONES["brown"], shirt_pattern="solid",
+                       shirt_color=(30, 80, 180), lower_pattern="solid", lower_color=(40, 140, 70), seed=3)
+
+
+@pytest.fixture(scope="module")
+def subjects(tmp_path_factory) -> dict:
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("synthetic")
+    out = {}
+    for pose in POSES:
+        obj = make_subject(spec_for(pose), root / pose)
+        out[pose] = (obj, read_npz(obj.parent / "truth.npz", TRUTH_SCHEMA, TRUTH_VERSION))
+    return out
+
+
+def load_textured(obj):
+    import trimesh
+
+    mesh = trimesh.load(str(obj), process=False)
+    assert isinstance(mesh, trimesh.Trimesh)
+    return mesh
+
+
+def kp(truth, name: str) -> np.ndarray:
+    return truth["coco17"][KP[name]]
+
+
+# ----------------------------------------------------------------------------- meshes
+
+@pytest.mark.parametrize("pose", POSES)
+def test_pose_mesh_is_valid_and_grounded(subjects, pose):
+    import trimesh
+
+    obj, truth = subjects[pose]
+    assert sorted(p.name for p in obj.parent.iterdir()) == sorted(FILES)
+    model = body_model()
+    v = np.asarray(load_textured(obj).vertices)  # split at UV seams by trimesh
+    assert np.isfinite(v).all()
+    verts = _obj_vertices(obj)
+    assert verts.shape == (int(truth["num_vertices"]), 3) == (model.num_vertices, 3)
+    raw = trimesh.Trimesh(verts, model.faces.numpy(), process=False)
+    assert raw.is_watertight and raw.is_winding_consistent
+    assert (raw.area_faces > 1e-10).mean() > 0.999
+    assert abs(verts[:, 1].min()) < 1e-5  # feet on y = 0
+    np.testing.assert_allclose(truth["bbox_min"], verts.min(0), atol=1e-5)
+    np.testing.assert_allclose(truth["bbox_max"], verts.max(0), atol=1e-5)
+    assert 1.0 < verts[:, 1].max() < 2.4
+    assert str(truth["pose_name"]) == pose
+    assert truth["joints"].shape == (model.num_joints, 3) and truth["coco17"].shape == (17, 3)
+    assert np.isfinite(truth["joints"]).all() and np.isfinite(truth["coco17"]).all()
+
+
+def _obj_vertices(obj) -> np.ndarray:
+    return np.array([[float(c) for c in line.split()[1:4]] for line in obj.read_text().splitlines()
+                     if line.startswith("v ")])
+
+
+def test_truth_params_reproduce_the_mesh(subjects):
+    obj, truth = subjects["walking"]
+    model = body_model()
+    params = BodyParams.from_numpy(truth)
+    with torch.no_grad():
+        out = model(params)
+    np.testing.assert_allclose(out.vertices[0].numpy(), _obj_vertices(obj), atol=1e-4)
+    np.testing.assert_allclose(out.joints[0].numpy(), truth["joints"], atol=1e-5)
+    np.testing.assert_allclose(out.coco17[0].numpy(), truth["coco17"], atol=1e-5)
+    assert list(truth["shape_names"]) == model.shape_names
+    np.testing.assert_allclose(truth["shape_values"], params.shape[0].numpy())
+    assert list(truth["joint_names"]) == model.joint_names
+
+
+# ----------------------------------------------------------------------------- pose semantics
+
+def test_arms_raised_wrists_above_head(subjects):
+    obj, truth = subjects["arms-raised"]
+    head_top = subjects["standing"][1]["bbox_max"][1]
+    for side in ("left", "right"):
+        assert kp(truth, f"{side}_wrist")[1] > head_top
+    assert kp(truth, "left_wrist")[0] > 0 > kp(truth, "right_wrist")[0]  # person's left at +X
+
+
+def test_seated_knees_at_hip_height_and_in_front(subjects):
+    _, truth = subjects["seated"]
+    for side in ("left", "right"):
+        hip, knee, ankle = kp(truth, f"{side}_hip"), kp(truth, f"{side}_knee"), kp(truth, f"{side}_ankle")
+        assert abs(knee[1] - hip[1]) < 0.12
+        assert knee[2] - hip[2] > 0.3
+        assert ankle[1] < knee[1] - 0.3  # shins hang down
+
+
+def test_hands_on_hips(subjects):
+    _, truth = subjects["hands-on-hips"]
+    for side in ("left", "right"):
+        wrist, hip = kp(truth, f"{side}_wrist"), kp(truth, f"{side}_hip")
+        assert np.linalg.norm(wrist - hip) < 0.2
+        assert abs(wrist[0]) > abs(hip[0])  # on the outside of the hip
+        elbow = kp(truth, f"{side}_elbow")
+        assert abs(elbow[0]) > abs(wrist[0]) + 0.05  # elbows out to the side
+
+
+def test_walking_feet_apart_in_depth(subjects):
+    _, truth = subjects["walking"]
+    la, ra = kp(truth, "left_ankle"), kp(truth, "right_ankle")
+    assert la[2] - ra[2] > 0.3  # left foot forward
+    assert kp(truth, "right_wrist")[2] > kp(truth, "left_wrist")[2] + 0.2  # arms swing opposite
+
+
+def test_standing_and_a_pose_arms(subjects):
+    _, stand = subjects["standing"]
+    _, apose = subjects["a-pose"]
+    for side in ("left", "right"):
+        assert kp(stand, f"{side}_wrist")[1] < kp(stand, f"{side}_hip")[1] + 0.05  # arms down
+        assert abs(kp(stand, f"{side}_wrist")[0]) < 0.35
+        assert abs(kp(apose, f"{side}_wrist")[0]) > 0.45  # arms out
+        assert kp(apose, f"{side}_hip")[1] < kp(apose, f"{side}_wrist")[1] < kp(apose, f"{side}_shoulder")[1]
+
+
+# ----------------------------------------------------------------------------- texture
+
+def _face_samples(mesh, face_mask: np.ndarray) -> np.ndarray:
+    """RGB (0-255) of the texture at 7 barycentric points of each selected face."""
+    tex = np.asarray(mesh.visual.material.image.convert("RGB"))
+    uv = np.asarray(mesh.visual.uv)[mesh.faces[face_mask]]  # (n, 3, 2)
+    w = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4], [2, 2, 1], [2, 1, 2], [1, 2, 2]], float)
+    w /= w.sum(1, keepdims=True)
+    pts = np.einsum("bk,nkd->nbd", w, uv).reshape(-1, 2)
+    h, wd = tex.shape[:2]
+    col = np.clip((pts[:, 0] * wd).astype(int), 0, wd - 1)
+    row = np.clip(((1.0 - pts[:, 1]) * h).astype(int), 0, h - 1)
+    return tex[row, col].astype(np.float64)
+
+
+def _near(samples: np.ndarray, rgb, tol: float) -> np.ndarray:
+    return np.linalg.norm(samples - np.asarray(rgb, float), axis=1) < tol
+
+
+def _region(mesh, centre, radius, axis: int, sign: float, min_dot: float = 0.6, cell: float = 0.02,
+            slack: float = 0.03) -> np.ndarray:
+    """Faces within ``radius`` of ``centre`` facing ``sign`` * ``axis`` that lie within ``slack`` of the
+    outermost such face along that direction in their ``cell``-sized grid square (a coarse depth
+    test: inner surfaces such as the mouth cavity drop out)."""
+    c = mesh.triangles_center
+    n = mesh.face_normals
+    cand = np.flatnonzero((np.linalg.norm(c - np.asarray(centre), axis=1) < radius) & (sign * n[:, axis] > min_dot))
+    other = [a for a in range(3) if a != axis]
+    keys = np.floor(c[cand][:, other] / cell).astype(np.int64)
+    _, cell_id = np.unique(keys, axis=0, return_inverse=True)
+    depth = sign * c[cand, axis]
+    best = np.full(cell_id.max() + 1, -np.inf)
+    np.maximum.at(best, cell_id, depth)
+    out = np.zeros(len(c), dtype=bool)
+    out[cand[depth >= best[cell_id] - slack]] = True
+    return out
+
+
+def test_face_on_the_front_of_the_head_only(subjects):
+    obj, truth = subjects["standing"]
+    spec = spec_for("standing")
+    mesh = load_textured(obj)
+    head = truth["joints"][list(truth["joint_names"]).index("head")] + np.array([0.0, 0.06, 0.0])
+    x, z = mesh.triangles_center[:, 0], mesh.triangles_center[:, 2]
+    front = _face_samples(mesh, _region(mesh, head, 0.14, 2, +1.0) & (z > head[2]))
+    # the back of the skull: not the nape, not the backs of the ears (skin)
+    back = _face_samples(mesh, _region(mesh, head, 0.10, 2, -1.0) & (z < head[2]) & (np.abs(x) < 0.06))
+    assert len(front) > 500 and len(back) > 500
+
+    def dark(samples):  # eye liner, pupils (the hair is blonde here)
+        return samples.mean(axis=1) < 45
+
+    def lips(samples):
+        return (samples[:, 0] - samples[:, 1] > 60) & (samples[:, 0] - samples[:, 2] > 50)
+
+    assert dark(front).mean() > 0.01 and lips(front).mean() > 0.003
+    assert dark(back).mean() < 0.002 and lips(back).mean() < 0.001
+    assert _near(front, spec.skin_tone, 40).mean() > 0.4
+    assert _near(back, spec.hair_color, 70).mean() > 0.85
+    assert _near(back, spec.skin_tone, 25).mean() < 0.05
+
+
+def _front_point(mesh, x: float, y: float) -> np.ndarray:
+    """The frontmost (largest z) face centre within 2 cm of (x, y) in the XY plane."""
+    c = mesh.triangles_center
+    near = np.flatnonzero(np.hypot(c[:, 0] - x, c[:, 1] - y) < 0.02)
+    return c[near[np.argmax(c[near, 2])]]
+
+
+def test_clothing_colours_differ_from_skin(subjects):
+    obj, truth = subjects["standing"]
+    spec = spec_for("standing")
+    mesh = load_textured(obj)
+    J = {n: truth["joints"][i] for i, n in enumerate(truth["joint_names"])}
+    belly = _front_point(mesh, 0.0, J["spine03"][1])
+    shirt = np.median(_face_samples(mesh, _region(mesh, belly, 0.06, 2, +1.0)), axis=0)
+    thigh = _front_point(mesh, *(0.5 * (J["upperleg02.L"] + J["lowerleg01.L"]))[:2])
+    trousers = np.median(_face_samples(mesh, _region(mesh, thigh, 0.08, 2, +1.0, 0.5)), axis=0)
+    shoes = np.median(_face_samples(mesh, _region(mesh, J["toe3-1.L"] + [0, 0.02, 0], 0.05, 1, +1.0, 0.3)), axis=0)
+    skin = np.asarray(spec.skin_tone, float)
+    for colour, expected in ((shirt, spec.shirt_color), (trousers, spec.lower_color), (shoes, spec.shoe_color)):
+        assert np.linalg.norm(colour - skin) > 60
+        assert np.linalg.norm(colour - np.asarray(expected, float)) < 30
+    forearm = 0.5 * (J["lowerarm01.L"] + J["wrist.L"])
+    arm = np.median(_face_samples(mesh, _region(mesh, forearm, 0.05, 0, +1.0, 0.3)), axis=0)
+    assert np.linalg.norm(arm - skin) < 30  # short sleeves: bare forearms
+
+
+def test_texture_is_in_the_anny_uv_layout(subjects):
+    obj, _ = subjects["a-pose"]
+    mesh = load_textured(obj)
+    assert mesh.visual.kind == "texture"
+    assert mesh.visual.material.image.size == (TEXTURE_SIZE, TEXTURE_SIZE)
+    model = body_model()
+    vt = np.array([[float(c) for c in line.split()[1:3]] for line in obj.read_text().splitlines()
+                   if line.startswith("vt ")])
+    np.testing.assert_allclose(vt, model.uvs.numpy(), atol=1e-6)
+
+
+def test_loads_through_scans_with_matching_normalisation(subjects):
+    scans = pytest.importorskip("humanvdm_core.scans")
+    obj, truth = subjects["seated"]
+    mesh = scans.load_scan(obj.parent)
+    assert mesh.texture is not None and mesh.texture.shape == (TEXTURE_SIZE, TEXTURE_SIZE, 3)
+    np.testing.assert_allclose(scans.normalization_transform(mesh), truth["normalized_from_world"], atol=1e-5)
+    norm = truth["normalized_from_world"]
+    joints_n = truth["joints"] @ norm[:3, :3].T + norm[:3, 3]
+    lo, hi = scans.normalize_scan(mesh).bounds
+    assert np.all(joints_n >= lo - 1e-3) and np.all(joints_n <= hi + 1e-3)
+    assert hi[1] - lo[1] == pytest.approx(scans.DEFAULT_SUBJECT_HEIGHT, abs=1e-4)
+
+
+# ----------------------------------------------------------------------------- determinism, specs
+
+def test_same_spec_gives_identical_files(subjects, tmp_path):
+    obj, _ = subjects["hands-on-hips"]
+    again = make_subject(spec_for("hands-on-hips"), tmp_path / "again")
+    for name in FILES:
+        assert (obj.parent / name).read_bytes() == (again.parent / name).read_bytes(), name
+
+
+def test_random_specs_are_varied_and_reproducible():
+    specs = random_specs(12, seed=5)
+    assert specs == random_specs(12, seed=5)
+    assert specs != random_specs(12, seed=6)
+    assert {s.pose for s in specs} == set(POSES)
+    assert len({s.skin_tone for s in specs}) >= 6
+    assert min(s.gender for s in specs) < 0.4 < 0.6 < max(s.gender for s in specs)
+    assert len({s.seed for s in specs}) == 12
+    for s in specs:
+        assert SubjectSpec.from_dict(s.to_dict()) == s
+
+
+def test_spec_validation():
+    with pytest.raises(ConfigError, match="pose"):
+        SubjectSpec(pose="cartwheel")
+    with pytest.raises(ConfigError, match="age"):
+        SubjectSpec(age=1.5)
+    with pytest.raises(ConfigError, match="skin_tone"):
+        SubjectSpec(skin_tone=(300, 0, 0))
+    with pytest.raises(ConfigError, match="unknown"):
+        SubjectSpec.from_dict({"colour": 1})
