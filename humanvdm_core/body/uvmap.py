@@ -134,7 +134,10 @@ class UVPositionMap:
 
     @classmethod
     def from_model(cls, model, resolution: int) -> UVPositionMap:
-        """For a :class:`~humanvdm_core.body.model.BodyModel` with a UV layout."""
+        """For a :class:`~humanvdm_core.body.model.BodyModel` with a UV layout (a backend whose layout
+        comes from a user file names that file when it is missing)."""
+        if hasattr(model, "require_uv_layout"):
+            model.require_uv_layout()
         if model.uvs is None or model.uv_faces is None:
             raise ValueError(f"body model {model.name} has no UV layout; use a topology with UVs")
         return cls.build(model.faces, model.uvs, model.uv_faces, resolution)
