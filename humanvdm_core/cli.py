@@ -167,8 +167,10 @@ def cmd_run(args) -> int:
         print(f"not implemented yet: {', '.join(missing)}" + (f" (so not run: {', '.join(blocked)})" if blocked else ""))
     for r in summary.failed:
         print(f"FAILED {r.label}: {r.reason}\n  log: {r.log}")
+    done = {r.subject.name for r in summary.runs if r.state in (RAN, CACHED)}
     for s in subjects:
-        print(f"outputs of {s.name}: {store.root / 'runs' / s.name}")
+        if s.name in done:
+            print(f"outputs of {s.name}: {store.root / 'runs' / s.name}")
     return 0 if summary.ok else 1
 
 

@@ -238,12 +238,13 @@ def _topological(pipe: Pipeline) -> list[str]:
 # ---------------------------------------------------------------------- code fingerprints
 
 def code_fingerprint(module: str, package_roots: tuple[str, ...] = ("humanvdm_core", "stages")) -> str:
-    """Hash of a stage module's source and of every project module it imports, transitively.
+    """Hash of a stage module's source and of every project module it imports, transitively
+    (modules of ``package_roots`` and of the stage's own top-level package).
 
     Imports inside functions count (stages import heavy modules lazily). Third-party code is not
     part of the fingerprint; its versions are recorded in the lockfile instead.
     """
-    sources = _project_sources(module, package_roots)
+    sources = _project_sources(module, (*package_roots, module.split(".")[0]))
     h = hashlib.sha256()
     for name in sorted(sources):
         h.update(name.encode() + b"\0" + sources[name] + b"\n")
@@ -268,13 +269,25 @@ def _project_sources(module: str, roots: tuple[str, ...]) -> dict[str, bytes]:
 
 @cache
 def _module_file(name: str) -> Path | None:
+    """The source file of a module, found by path from its top-level package without importing
+    anything below it (``find_spec`` on a submodule would run its packages' ``__init__``)."""
+    top, _, rest = name.partition(".")
     try:
-        spec = importlib.util.find_spec(name)
+        spec = importlib.util.find_spec(top)
     except (ModuleNotFoundError, ValueError):
         return None
     if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
         return None
-    return Path(spec.origin)
+    base = Path(spec.origin)
+    if not rest:
+        return base
+    if base.name != "__init__.py":
+        return None
+    path = base.parent.joinpath(*rest.split("."))
+    for candidate in (path.with_suffix(".py"), path / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def _imports(name: str, path: Path, src: bytes) -> list[str]:

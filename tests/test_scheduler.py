@@ -213,3 +213,25 @@ def test_photo_run_chooses_diffuse_scan_run_chooses_renderer():
     assert str(photo["upscale"].chosen["frames"]) == "diffuse.orbit"
     assert str(scan["upscale"].chosen["frames"]) == "render-training-orbits.orbit"
     assert "render-training-orbits" not in photo and "diffuse" not in scan
+
+
+def test_code_fingerprint_follows_project_imports_only():
+    from humanvdm_core.pipeline import _project_sources
+
+    sources = _project_sources("stages.upscale", ("humanvdm_core", "stages"))
+    assert {"stages.upscale", "humanvdm_core.upscale", "humanvdm_core.io", "humanvdm_core.stage"} <= set(sources)
+    assert "humanvdm_core.render" not in sources and "humanvdm_core.body.anny_model" not in sources
+    assert not any(name.startswith(("numpy", "cv2", "torch")) for name in sources)
+
+
+def test_editing_a_helper_module_reruns_the_stage_that_imports_it(toy):
+    (toy.root / toy.pkg / "helper.py").write_text("FACTOR = 1\n")
+    from tests.toyproject import STAGES
+
+    toy.write_stage("measure", STAGES["measure"].replace("def run(ctx):", "def run(ctx):\n    from . import helper  # noqa: F401"))
+    subj = toy.subject("a", "text")
+    toy.scheduler().run([subj])
+    toy.ran()
+    (toy.root / toy.pkg / "helper.py").write_text("FACTOR = 2\n")
+    s = toy.scheduler().run([subj])
+    assert states(s) == {"shout": CACHED, "measure": RAN, "report": CACHED}
