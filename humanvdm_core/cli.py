@@ -189,7 +189,8 @@ def cmd_dag(args) -> int:
         return 0
     for name in pipe.order():
         sd = pipe.stages[name]
-        ins = ", ".join(f"{k}<-{' | '.join(map(str, v))}" for k, v in sd.inputs.items())
+        ins = ", ".join(f"{k}<-{' | '.join(map(str, v))}{'?' if k in sd.optional else ''}"
+                        for k, v in sd.inputs.items())
         flag = "" if sd.implemented else "  [not implemented yet]"
         print(f"{name}{flag}\n    module: {sd.module}  backend: {sd.backend}\n    in:  {ins}\n    out: {', '.join(sd.outputs)}")
     return 0

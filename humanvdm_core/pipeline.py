@@ -16,7 +16,8 @@ Format::
 
 An input reference is ``$name`` (a run input) or ``stage.output``; ``a | b`` lists alternatives,
 the first one available in the run is used (a photo run has ``diffuse``, a scan run has
-``render-training-orbits``). A stage whose module does not exist yet is *not implemented*: it is
+``render-training-orbits``). A trailing ``?`` makes an input optional: without it the stage still
+runs (e.g. ``evaluate`` compares with a scan's ground truth only when the run has a scan). A stage whose module does not exist yet is *not implemented*: it is
 shown, never run, and the stages that need it are blocked.
 
 Validation raises :class:`ConfigError` naming the stage for: invalid YAML or duplicate keys,
@@ -82,6 +83,7 @@ class StageDef:
     params: dict[str, Any]
     backend: str
     help: str = ""
+    optional: set[str] = field(default_factory=set)  # inputs marked ``?``: the stage runs without them
     spec: StageSpec | None = None  # None: module not implemented yet
 
     @property
@@ -117,9 +119,12 @@ class Pipeline:
         return sd.spec.resolve_params(merged)
 
 
-def parse_ref(stage: str, text: str) -> list[Ref]:
+def parse_ref(stage: str, text: str) -> tuple[list[Ref], bool]:
+    """Alternatives of one input reference, and whether it is optional (a trailing ``?``)."""
+    text = str(text).strip()
+    optional = text.endswith("?")
     alts = []
-    for part in str(text).split("|"):
+    for part in text.rstrip("?").split("|"):
         part = part.strip()
         if part.startswith("$") and len(part) > 1:
             alts.append(Ref(None, part[1:]))
@@ -128,7 +133,7 @@ def parse_ref(stage: str, text: str) -> list[Ref]:
             alts.append(Ref(s, o))
         else:
             raise ConfigError(f"stage {stage}: bad input reference {part!r} (use $input or stage.output)")
-    return alts
+    return alts, optional
 
 
 def load_spec(module: str) -> StageSpec | None:
@@ -178,12 +183,14 @@ def load_pipeline(path: str | Path) -> Pipeline:
             raise ConfigError(f"stage {name}: duplicate outputs {dup}")
         if not outputs:
             raise ConfigError(f"stage {name}: declares no outputs")
-        inputs = {k: parse_ref(name, v) for k, v in (body.get("inputs") or {}).items()}
+        parsed = {k: parse_ref(name, v) for k, v in (body.get("inputs") or {}).items()}
+        inputs = {k: alts for k, (alts, _) in parsed.items()}
+        optional = {k for k, (_, opt) in parsed.items() if opt}
         params = body.get("params") or {}
         if not isinstance(params, dict):
             raise ConfigError(f"stage {name}: params must be a mapping")
         pipe.stages[name] = StageDef(name, str(body["module"]), inputs, outputs, dict(params),
-                                     str(body.get("backend", "embedded")), str(body.get("help", "")))
+                                     str(body.get("backend", "embedded")), str(body.get("help", "")), optional)
     _validate(pipe)
     return pipe
 
@@ -205,6 +212,9 @@ def _validate(pipe: Pipeline) -> None:
         sd.spec = load_spec(sd.module)
         if sd.spec is None:
             continue
+        if set(sd.spec.optional) != sd.optional:
+            raise ConfigError(f"stage {sd.name}: pipeline marks inputs {sorted(sd.optional)} optional (?), "
+                              f"module {sd.module} has {sorted(sd.spec.optional)}")
         if set(sd.spec.inputs) != set(sd.inputs) or list(sd.spec.outputs) != sd.outputs:
             raise ConfigError(f"stage {sd.name}: pipeline declares inputs {sorted(sd.inputs)} / outputs "
                               f"{sd.outputs}, module {sd.module} has {sorted(sd.spec.inputs)} / {list(sd.spec.outputs)}")

@@ -151,6 +151,8 @@ class Scheduler:
                     ref = next((r for r in alts if (r.stage is None and r.name == subj.kind)
                                 or (r.stage is not None and r.stage in by_stage)), None)
                     if ref is None:
+                        if inp in sd.optional:
+                            continue
                         break
                     chosen[inp] = ref
                 else:

@@ -85,6 +85,7 @@ class StageSpec:
     outputs: dict[str, str]
     params: dict[str, Param] = field(default_factory=dict)
     backends: tuple[str, ...] = ("embedded",)
+    optional: tuple[str, ...] = ()  # inputs a run may lack (absent from ``ctx.inputs`` then)
 
     def resolve_params(self, overrides: dict[str, Any]) -> dict[str, Any]:
         """Defaults updated by ``overrides``; unknown names raise ConfigError naming the stage."""
@@ -105,7 +106,10 @@ class StageSpec:
         """The command-line arguments that run this stage with these inputs, outputs and params."""
         args: list[str] = []
         for k in self.inputs:
-            args += [f"--{_flag(k)}", str(inputs[k])]
+            if k in inputs:
+                args += [f"--{_flag(k)}", str(inputs[k])]
+            elif k not in self.optional:
+                raise ConfigError(f"stage {self.name}: input {k} is required")
         for k in self.outputs:
             args += [f"--out-{_flag(k)}", str(outputs[k])]
         for k, v in params.items():
@@ -116,7 +120,9 @@ class StageSpec:
         """Parse the command line, run the stage, map errors to exit codes."""
         parser = argparse.ArgumentParser(prog=f"python -m stages.{self.name.replace('-', '_')}", description=self.summary)
         for k, desc in self.inputs.items():
-            parser.add_argument(f"--{_flag(k)}", dest=f"in_{k}", type=Path, required=True, help=f"input: {desc}")
+            optional = k in self.optional
+            parser.add_argument(f"--{_flag(k)}", dest=f"in_{k}", type=Path, required=not optional,
+                                help=f"{'optional ' if optional else ''}input: {desc}")
         for k, desc in self.outputs.items():
             parser.add_argument(f"--out-{_flag(k)}", dest=f"out_{k}", type=Path, required=True, help=f"output directory: {desc}")
         for k, p in self.params.items():
@@ -131,7 +137,7 @@ class StageSpec:
         try:
             params = self.resolve_params({k: getattr(ns, f"p_{k}") for k in self.params
                                           if getattr(ns, f"p_{k}") is not None})
-            inputs = {k: getattr(ns, f"in_{k}") for k in self.inputs}
+            inputs = {k: getattr(ns, f"in_{k}") for k in self.inputs if getattr(ns, f"in_{k}") is not None}
             for k, path in inputs.items():
                 if not path.exists():
                     raise ConfigError(f"stage {self.name}: input {k} does not exist: {path}")

@@ -235,3 +235,22 @@ def test_editing_a_helper_module_reruns_the_stage_that_imports_it(toy):
     (toy.root / toy.pkg / "helper.py").write_text("FACTOR = 2\n")
     s = toy.scheduler().run([subj])
     assert states(s) == {"shout": CACHED, "measure": RAN, "report": CACHED}
+
+
+def test_optional_input_absent_from_the_run(tmp_path):
+    from tests.toyproject import PIPELINE, STAGES
+
+    stages = dict(STAGES)
+    stages["report"] = STAGES["report"].replace(
+        'outputs={"out": "report"})', 'outputs={"out": "report"}, optional=("note",))').replace(
+        'inputs={"src": "number"}', 'inputs={"src": "number", "note": "a note"}').replace(
+        'f"size={n}"', 'f"size={n} note={\'note\' in ctx.inputs}"')
+    text = PIPELINE.replace("inputs: {{src: measure.out}}", "inputs: {{src: measure.out, note: \"$note?\"}}").replace(
+        "  text: {{kind: text}}", "  text: {{kind: text}}\n  note: {{kind: text}}")
+    toy = ToyProject(tmp_path, pipeline_text=text, stages=stages)
+    s = toy.scheduler().run([toy.subject("a", "abc")])
+    assert states(s)["report"] == RAN
+    assert (toy.store.root / "runs" / "a" / "report" / "out" / "report.txt").read_text() == "size=0 note=False"
+    toy.pipeline_path.write_text(toy.pipeline_path.read_text().replace("$note?", "$note"))
+    with pytest.raises(ConfigError, match="optional"):
+        toy.scheduler()
