@@ -36,6 +36,7 @@ from typing import Any
 import yaml
 
 from humanvdm_core.errors import ConfigError, HumanVDMError
+from humanvdm_core.hashing import hash_tree
 from humanvdm_core.io import atomic_write_text
 from humanvdm_core.pipeline import Pipeline, Ref, code_fingerprint
 from humanvdm_core.store import Store
@@ -191,9 +192,14 @@ class Scheduler:
         sd = self.pipeline.stages[stage]
         out = {}
         for name, p in sd.spec.params.items():
-            if p.weights and (p.backend is None or p.backend == sd.backend):
+            if p.weights and p.applies_to(sd.backend):
                 path = Path(str(self.params[stage][name])).expanduser()
-                out[name] = self.store.stat_cache.file_hash(path) if path.is_file() else "missing"
+                if path.is_file():
+                    out[name] = self.store.stat_cache.file_hash(path)
+                elif path.is_dir():  # a folder of model files (e.g. SMPL's)
+                    out[name] = hash_tree(path, self.store.stat_cache)[0]
+                else:
+                    out[name] = "missing"
         return out
 
     def _resolve_inputs(self, run: StageRun) -> None:

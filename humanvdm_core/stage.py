@@ -32,14 +32,18 @@ EXIT_OK, EXIT_BUG, EXIT_USAGE, EXIT_USER_ERROR = 0, 1, 2, 3
 
 @dataclass(frozen=True)
 class Param:
-    """A stage parameter. ``weights=True`` marks a local checkpoint path whose content hash joins
-    the stage-run key (only while ``backend`` is the backend that uses it)."""
+    """A stage parameter. ``weights=True`` marks a local checkpoint file or folder whose content hash
+    joins the stage-run key (only while the stage runs a backend in ``backend``)."""
 
     default: Any
     help: str
     choices: tuple | None = None
     weights: bool = False
-    backend: str | None = None
+    backend: str | tuple[str, ...] | None = None
+
+    def applies_to(self, backend: str) -> bool:
+        """Whether this param matters for ``backend`` (``backend=None``: for every backend)."""
+        return self.backend is None or backend in ((self.backend,) if isinstance(self.backend, str) else self.backend)
 
     @property
     def type(self) -> type:

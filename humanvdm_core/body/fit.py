@@ -1,0 +1,571 @@
+"""Fitting a parametric body model to a frame set (paper section 3.3: the body the Gaussians hang on).
+
+Contract:
+
+- Input: a :class:`~humanvdm_core.body.model.BodyModel` (any backend, see
+  :func:`humanvdm_core.body.load_body_model`, re-exported here),
+  the frames' cameras (:class:`~humanvdm_core.cameras.Cameras`) and one :class:`FrameObservation`
+  per frame used (COCO-17 keypoints in pixels with confidences from
+  :func:`humanvdm_core.perception.detect_person`, and the person mask). :func:`observe_frames`
+  builds them from RGBA frames.
+- The person is static and the cameras move: ONE set of body parameters (pose, shape, global
+  orientation, translation, scale) explains every frame. A single photo is the same problem with one
+  camera. With ``FitOptions.refine_per_frame`` each frame also gets a small pose correction on top of
+  the shared pose (for generated orbits whose person drifts); the shared pose stays the result.
+- Objective (Adam, two phases): phase 1 fits global orientation, translation and scale to the torso
+  keypoints (shoulders, hips); phase 2 adds the pose of the main limb/spine joints
+  (:data:`FIT_JOINTS`; the others keep the model's zero pose) and the shape. Terms, each
+  dimensionless and multiplied by its weight in :class:`FitOptions`:
+
+  * keypoints: confidence-weighted robust (Cauchy, scale ``KEYPOINT_SIGMA`` of the image height)
+    distance between the model's projected ``coco17`` and the detections;
+  * silhouette: projected vertices (a fixed subsample) must fall inside the mask (the mask's outside
+    distance transform sampled bilinearly at them) and the mask's contour must be covered (each
+    contour point's distance to the nearest projected vertex); both in units of
+    ``SILHOUETTE_SIGMA`` of the image size;
+  * priors: squared axis-angle of the fitted joints (stronger with fewer than five views, see
+    ``FitOptions.single_view_pose_prior_weight``); squared deviation of the shape from the
+    backend's default; the scale from its initial estimate (only matters for one camera).
+
+- Left/right confusion: a keypoint detector often swaps the person's left and right on back and
+  side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
+  that better agrees with the current 3D estimate is used; it is decided after phase 1 and again
+  during phase 2 (:data:`SWAP_GROUPS`).
+- Initialisation: from the key frame (the one whose camera azimuth is nearest 0, the input view):
+  the body faces that camera; its translation puts the torso centre on the ray through the detected
+  torso centre at the camera's distance to the orbit centre; its scale matches the detected torso
+  height at that depth.
+- Output: :class:`FitResult` (parameters, posed :class:`~humanvdm_core.body.model.BodyOutput`,
+  per-frame reprojection error in pixels and L/R decisions). :func:`silhouette_iou` rasterises the
+  fitted mesh with :mod:`humanvdm_core.render` for an honest IoU against the masks;
+  :func:`joint_error_mm` compares with known true joints.
+- Deterministic: a fixed seed picks the silhouette vertex subsample; same inputs and options give
+  the same result on one machine.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from humanvdm_core.body import load_body_model
+from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams
+from humanvdm_core.cameras import Cameras
+from humanvdm_core.errors import ConfigError, HumanVDMError, InputError
+
+log = logging.getLogger("humanvdm.body.fit")
+
+# The joints whose rotation is fitted (a subset of the rig; the rest keep the zero pose): Anny's names,
+# then SMPL/SMPL-X's; the names a model has are used.
+FIT_JOINTS: tuple[str, ...] = (
+    "spine03", "spine01", "neck01", "head",
+    "clavicle.L", "clavicle.R", "upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R",
+    "upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R", "foot.L", "foot.R",
+    "spine1", "spine2", "spine3", "neck", "left_collar", "right_collar", "left_shoulder", "right_shoulder",
+    "left_elbow", "right_elbow", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+)
+# COCO-17 index pairs (left, right) per group whose detected L/R assignment is decided together.
+SWAP_GROUPS: dict[str, tuple[tuple[int, int], ...]] = {
+    "face": ((1, 2), (3, 4)),
+    "arms": ((5, 6), (7, 8), (9, 10)),
+    "legs": ((11, 12), (13, 14), (15, 16)),
+}
+TORSO = (5, 6, 11, 12)  # COCO shoulders and hips
+KEYPOINT_SIGMA = 0.02  # Cauchy scale of the keypoint residual, fraction of the image height
+SILHOUETTE_SIGMA = 0.01  # silhouette distances are divided by this (fraction of the image size)
+SILHOUETTE_SIZE = 160  # masks are compared at this resolution
+CONTOUR_POINTS = 256  # contour samples per frame
+MIN_KEYPOINT_CONFIDENCE = 0.3  # keypoints below this confidence are ignored
+
+
+@dataclass
+class FitOptions:
+    """Knobs of :func:`fit_body` (the stage exposes them as params)."""
+
+    iterations: int = 250  # phase-2 Adam steps (phase 1 takes a third of this, at least 30)
+    keypoint_weight: float = 1.0
+    silhouette_weight: float = 0.3
+    pose_prior_weight: float = 0.05
+    # with few views the pose prior grows: max(pose_prior_weight, this / views_with_keypoints**2), so a
+    # single photo (depth of the limbs unobservable) stays near the rest pose
+    single_view_pose_prior_weight: float = 1.0
+    shape_prior_weight: float = 0.05
+    scale_prior_weight: float = 1.0
+    refine_per_frame: bool = False
+    refine_iterations: int = 60
+    refine_prior_weight: float = 1.0
+    silhouette_vertices: int = 1500
+    seed: int = 0
+
+    def check(self) -> None:
+        if self.iterations < 1 or self.refine_iterations < 0:
+            raise ConfigError("iterations must be >= 1 and refine_iterations >= 0")
+        for name in ("keypoint_weight", "silhouette_weight", "pose_prior_weight", "single_view_pose_prior_weight",
+                     "shape_prior_weight",
+                     "scale_prior_weight", "refine_prior_weight"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.keypoint_weight == 0 and self.silhouette_weight == 0:
+            raise ConfigError("keypoint_weight and silhouette_weight cannot both be 0")
+
+
+@dataclass
+class FrameObservation:
+    """What one frame tells the fit. ``keypoints`` (17, 2) pixels, ``confidences`` (17,) (all 0 when
+    only the silhouette is known), ``mask`` (H, W) float in [0, 1]."""
+
+    index: int  # frame index in the frame set
+    keypoints: np.ndarray
+    confidences: np.ndarray
+    mask: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def has_keypoints(self) -> bool:
+        return bool((self.confidences >= MIN_KEYPOINT_CONFIDENCE).sum() >= 4)
+
+
+@dataclass
+class FitResult:
+    """A fitted body. Per-frame arrays follow ``frame_indices`` (the observations' order)."""
+
+    params: BodyParams  # batch 1, detached
+    output: BodyOutput  # posed with ``params``, detached
+    frame_indices: list[int]
+    reprojection_px: np.ndarray  # (N,) mean pixel distance over confident keypoints; nan without keypoints
+    swapped: np.ndarray  # (N, 3) bool per SWAP_GROUPS group: the detection's left/right was swapped
+    keypoints: np.ndarray  # (N, 17, 2) detections as used (after any swap)
+    confidences: np.ndarray  # (N, 17)
+    projected: np.ndarray  # (N, 17, 2) the fitted model's coco17 in each frame, pixels
+    per_frame_pose: np.ndarray | None  # (N, P, 3) with refine_per_frame, else None
+    loss_history: list[float]
+    seconds: float
+    warnings: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- observations
+
+def observe_frames(
+    frames: np.ndarray, indices: Sequence[int], names: Sequence[str] | None = None,
+) -> tuple[list[FrameObservation], dict[int, str]]:
+    """Detect the person in RGBA frames (N, H, W, 4) at ``indices``.
+
+    Returns the observations and, per frame that gave nothing usable, the reason. A frame whose
+    detection fails but whose alpha is a real mask (1%..99% covered) still gives a silhouette-only
+    observation (confidences 0)."""
+    from humanvdm_core.perception import Photo, detect_person
+
+    observations: list[FrameObservation] = []
+    failed: dict[int, str] = {}
+    h, w = frames.shape[1:3]
+    for j, i in enumerate(indices):
+        rgba = frames[i]
+        alpha = np.clip(rgba[..., 3], 0.0, 1.0) if rgba.shape[-1] == 4 else None
+        name = names[j] if names is not None else f"frame {i:04d}"
+        photo = Photo(rgb=np.ascontiguousarray(np.clip(rgba[..., :3], 0.0, 1.0)), alpha=alpha,
+                      path=Path(name), original_size=(w, h))
+        try:
+            det = detect_person(photo)
+        except InputError as exc:
+            coverage = 0.0 if alpha is None else float(np.mean(alpha > 0.5))
+            if alpha is not None and 0.01 <= coverage <= 0.99:
+                observations.append(FrameObservation(i, np.zeros((17, 2), np.float32), np.zeros(17, np.float32),
+                                                     alpha.astype(np.float32), [f"{name}: keypoints unusable ({exc})"]))
+            else:
+                failed[i] = str(exc)
+            continue
+        observations.append(FrameObservation(i, det.keypoints.astype(np.float32),
+                                             det.confidences.astype(np.float32), det.mask.astype(np.float32),
+                                             list(det.warnings)))
+    return observations, failed
+
+
+# ----------------------------------------------------------------------------- geometry helpers
+
+def project(points: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points (N, 3) or (F, N, 3) into F cameras: pixels (F, N, 2) and camera depth (F, N)."""
+    if points.dim() == 2:
+        points = points[None].expand(w2c.shape[0], -1, -1)
+    cam = points @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]
+    z = cam[..., 2].clamp(min=1e-4)
+    uv = cam[..., :2] / z[..., None]
+    px = uv * torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, None] + K[:, None, :2, 2]
+    return px, cam[..., 2]
+
+
+def _swap_pairs(keypoints: np.ndarray, confidences: np.ndarray, groups: Sequence[bool]):
+    kp, cf = keypoints.copy(), confidences.copy()
+    for flag, pairs in zip(groups, SWAP_GROUPS.values(), strict=True):
+        if flag:
+            for a, b in pairs:
+                kp[[a, b]], cf[[a, b]] = kp[[b, a]], cf[[b, a]]
+    return kp, cf
+
+
+def _silhouette_data(mask: np.ndarray, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Outside distance transform (size, size) in units of the image size, and contour points
+    (CONTOUR_POINTS, 2) in [0, 1] image coordinates."""
+    import cv2
+
+    small = cv2.resize(mask.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) > 0.5
+    dt = cv2.distanceTransform((~small).astype(np.uint8), cv2.DIST_L2, 5).astype(np.float32) / size
+    contours, _ = cv2.findContours(small.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    pts = np.concatenate([c[:, 0, :] for c in contours], 0).astype(np.float32) if contours else np.zeros((0, 2))
+    if len(pts) == 0:
+        pts = np.full((1, 2), size / 2.0, np.float32)
+    take = np.linspace(0, len(pts) - 1, min(CONTOUR_POINTS, len(pts))).round().astype(np.int64)
+    return dt, (pts[take] + 0.5) / size
+
+
+def _cauchy(r2: torch.Tensor, sigma: float) -> torch.Tensor:
+    return torch.log1p(r2 / (sigma * sigma))
+
+
+# ----------------------------------------------------------------------------- the fit
+
+class _Problem:
+    """Tensors shared by the fitting phases."""
+
+    def __init__(self, model: BodyModel, cameras: Cameras, observations: list[FrameObservation],
+                 options: FitOptions):
+        self.model = model
+        self.options = options
+        self.obs = observations
+        idx = [o.index for o in observations]
+        cams = cameras.subset(idx)
+        self.cams = cams
+        dt = model.dtype
+        self.w2c = torch.as_tensor(cams.w2c, dtype=dt)
+        self.K = torch.as_tensor(cams.K, dtype=dt)
+        self.size = torch.tensor([cams.width, cams.height], dtype=dt)
+        self.height = float(cams.height)
+        rng = np.random.default_rng(options.seed)
+        dts, contours = zip(*[_silhouette_data(o.mask, SILHOUETTE_SIZE, rng) for o in observations], strict=True)
+        self.dt = torch.as_tensor(np.stack(dts)[:, None], dtype=dt)  # (F, 1, S, S)
+        self.contours = torch.as_tensor(np.stack(contours), dtype=dt)  # (F, C, 2)
+        nv = model.num_vertices
+        self.sil_vertices = torch.as_tensor(
+            np.sort(rng.choice(nv, size=min(options.silhouette_vertices, nv), replace=False)))
+        self.raw_kp = np.stack([o.keypoints for o in observations]).astype(np.float32)
+        self.raw_conf = np.stack([np.where(o.confidences >= MIN_KEYPOINT_CONFIDENCE, o.confidences, 0.0)
+                                  for o in observations]).astype(np.float32)
+        self.swapped = np.zeros((len(observations), len(SWAP_GROUPS)), dtype=bool)
+        self.set_swaps(self.swapped)
+        names = set(model.pose_joint_names)
+        self.fit_joint_ids = torch.as_tensor([model.pose_index(n) for n in FIT_JOINTS if n in names],
+                                             dtype=torch.int64)
+
+    def set_swaps(self, swapped: np.ndarray) -> None:
+        self.swapped = swapped.copy()
+        kps, cfs = zip(*[_swap_pairs(k, c, s) for k, c, s in zip(self.raw_kp, self.raw_conf, swapped, strict=True)],
+                       strict=True)
+        self.kp = torch.as_tensor(np.stack(kps), dtype=self.model.dtype)
+        self.conf = torch.as_tensor(np.stack(cfs), dtype=self.model.dtype)
+
+    def decide_swaps(self, coco17: torch.Tensor) -> int:
+        """Per frame and group, keep the L/R assignment nearer the model's projection; returns how
+        many decisions changed."""
+        with torch.no_grad():
+            proj, _ = project(coco17, self.w2c, self.K)
+        proj = proj.numpy()
+        new = self.swapped.copy()
+        for f in range(len(self.obs)):
+            for g, pairs in enumerate(SWAP_GROUPS.values()):
+                cost = [0.0, 0.0]
+                for a, b in pairs:
+                    ka, kb = self.raw_kp[f, a], self.raw_kp[f, b]
+                    ca, cb = self.raw_conf[f, a], self.raw_conf[f, b]
+                    pa, pb = proj[f, a], proj[f, b]
+                    cost[0] += ca * np.linalg.norm(ka - pa) + cb * np.linalg.norm(kb - pb)
+                    cost[1] += ca * np.linalg.norm(ka - pb) + cb * np.linalg.norm(kb - pa)
+                new[f, g] = cost[1] < cost[0]
+        changed = int((new != self.swapped).sum())
+        self.set_swaps(new)
+        return changed
+
+    # ----- loss terms
+    def keypoint_term(self, coco17: torch.Tensor, joints: Sequence[int] | None = None) -> torch.Tensor:
+        proj, _ = project(coco17, self.w2c, self.K)
+        r2 = ((proj - self.kp) ** 2).sum(-1) / (self.height ** 2)
+        conf = self.conf if joints is None else self.conf[:, list(joints)]
+        r2 = r2 if joints is None else r2[:, list(joints)]
+        total = conf.sum()
+        if float(total) <= 0:
+            return coco17.sum() * 0.0
+        return (conf * _cauchy(r2, KEYPOINT_SIGMA)).sum() / total
+
+    def silhouette_term(self, vertices: torch.Tensor) -> torch.Tensor:
+        v = vertices[..., self.sil_vertices, :]
+        px, _ = project(v, self.w2c, self.K)
+        uv = px / self.size  # (F, n, 2) in [0, 1]
+        grid = (uv * 2.0 - 1.0)[:, :, None, :]  # (F, n, 1, 2)
+        outside = torch.nn.functional.grid_sample(self.dt, grid, mode="bilinear", padding_mode="border",
+                                                  align_corners=False)[:, 0, :, 0]  # (F, n)
+        inside_term = outside.mean() / SILHOUETTE_SIGMA
+        with torch.no_grad():  # nearest projected vertex of each contour point (gradient as min's)
+            nearest = torch.cdist(self.contours, uv.detach()).argmin(-1)  # (F, C)
+        picked = torch.gather(uv, uv.dim() - 2, nearest[..., None].expand(-1, -1, 2))
+        cover_term = ((picked - self.contours) ** 2).sum(-1).add(1e-12).sqrt().mean() / SILHOUETTE_SIGMA
+        return inside_term + cover_term
+
+
+def _initial_params(problem: _Problem, key: int) -> BodyParams:
+    """Face the key camera; place and scale the torso from the key frame's detections."""
+    model = problem.model
+    params = model.zero_params(1)
+    cams = problem.cams
+    az = math.radians(float(cams.azimuth_deg[key]))
+    params.global_orient = torch.tensor([[0.0, az, 0.0]], dtype=model.dtype)
+    with torch.no_grad():
+        out = model(params)
+    coco = out.coco17[0].numpy().astype(np.float64)
+    kp, conf = problem.raw_kp[key], problem.raw_conf[key]
+    w2c, K = cams.w2c[key], cams.K[key]
+    depth = float(w2c[2, 3])  # camera z of the world origin (the orbit centre)
+    if conf[list(TORSO)].min() > 0:
+        centre_px = kp[list(TORSO)].mean(0)
+        top, bottom = kp[[5, 6]].mean(0), kp[[11, 12]].mean(0)
+        torso_px = float(np.linalg.norm(top - bottom))
+        model_torso = float(np.linalg.norm(coco[[5, 6]].mean(0) - coco[[11, 12]].mean(0)))
+        scale = torso_px * depth / float(K[1, 1]) / max(model_torso, 1e-6)
+        scale = float(np.clip(scale, 0.2, 5.0))
+    else:  # silhouette only: the mask's bounding box centre and height
+        mask = problem.obs[key].mask > 0.5
+        ys, xs = np.nonzero(mask)
+        centre_px = np.array([xs.mean(), ys.mean()]) if len(xs) else K[:2, 2]
+        extent = (ys.max() - ys.min() + 1) * depth / float(K[1, 1]) if len(ys) else 1.7
+        model_h = float(out.vertices[0, :, 1].max() - out.vertices[0, :, 1].min())
+        scale = float(np.clip(extent / model_h, 0.2, 5.0))
+    ray = np.linalg.inv(K) @ np.array([centre_px[0], centre_px[1], 1.0])
+    point_cam = ray / ray[2] * depth
+    c2w = np.linalg.inv(w2c)
+    point = c2w[:3, :3] @ point_cam + c2w[:3, 3]
+    model_centre = coco[list(TORSO)].mean(0) * scale
+    params.scale = torch.tensor([[scale]], dtype=model.dtype)
+    params.transl = torch.as_tensor(point - model_centre, dtype=model.dtype)[None]
+    return params
+
+
+def _key_frame(problem: _Problem) -> int:
+    """The observation nearest the input view (azimuth 0) that has torso keypoints, else the nearest."""
+    az = np.abs((problem.cams.azimuth_deg + 180.0) % 360.0 - 180.0)
+    order = np.argsort(az, kind="stable")
+    for k in order:
+        if problem.raw_conf[k][list(TORSO)].min() > 0:
+            return int(k)
+    return int(order[0])
+
+
+def _cosine_lr(opt: torch.optim.Optimizer, base: list[float], step: int, total: int) -> None:
+    f = 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * step / max(total, 1)))
+    for group, lr in zip(opt.param_groups, base, strict=True):
+        group["lr"] = lr * f
+
+
+def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObservation],
+             options: FitOptions | None = None, logger: logging.Logger | None = None) -> FitResult:
+    """Fit one static body to the observations (see the module docstring)."""
+    options = options or FitOptions()
+    options.check()
+    lg = logger or log
+    if not observations:
+        raise InputError("no usable frames to fit the body to")
+    if not any(o.has_keypoints for o in observations):
+        raise InputError("no frame has usable keypoints (the person's shoulders and hips must be visible in at "
+                         "least one frame)")
+    t0 = time.perf_counter()
+    torch.manual_seed(options.seed)
+    problem = _Problem(model, cameras, observations, options)
+    key = _key_frame(problem)
+    init = _initial_params(problem, key)
+    dt = model.dtype
+    history: list[float] = []
+
+    # free variables
+    orient = init.global_orient.clone().requires_grad_(True)
+    transl = init.transl.clone().requires_grad_(True)
+    log_scale = torch.log(init.scale).clone().requires_grad_(True)
+    scale0 = init.scale.clone()
+    default_shape = model.default_shape(1)
+    # Anny's phenotypes live in [0, 1] (fitted through a sigmoid); other backends' coefficients are free
+    bounded = model.name.startswith("anny")
+    shape_var = (torch.logit(default_shape.clamp(1e-3, 1 - 1e-3)) if bounded else default_shape).clone()
+    shape_var.requires_grad_(True)
+    joint_rot = torch.zeros(len(problem.fit_joint_ids), 3, dtype=dt, requires_grad=True)
+    base_pose = init.pose.clone()
+
+    def make_params(rot: torch.Tensor) -> BodyParams:
+        pose = base_pose.clone()
+        pose[0, problem.fit_joint_ids] = rot
+        return BodyParams(pose=pose, shape=torch.sigmoid(shape_var) if bounded else shape_var, global_orient=orient, transl=transl,
+                          scale=torch.exp(log_scale))
+
+    def scale_prior() -> torch.Tensor:
+        return options.scale_prior_weight * (log_scale - torch.log(scale0)).pow(2).sum() / len(observations)
+
+    # phase 1: global orientation, translation, scale on the torso (and silhouettes, lightly)
+    n1 = max(30, options.iterations // 3)
+    opt = torch.optim.Adam([orient, transl, log_scale], lr=0.02)
+    for step in range(n1):
+        _cosine_lr(opt, [0.02], step, n1)
+        opt.zero_grad()
+        out = model(make_params(joint_rot))
+        loss = options.keypoint_weight * problem.keypoint_term(out.coco17[0], TORSO) + scale_prior()
+        if options.silhouette_weight > 0:
+            loss = loss + 0.3 * options.silhouette_weight * problem.silhouette_term(out.vertices[0])
+        loss.backward()
+        opt.step()
+        history.append(float(loss.detach()))
+    changed = problem.decide_swaps(out.coco17[0].detach())
+    lg.debug("phase 1: loss %.4f, %d left/right decisions changed", history[-1], changed)
+
+    # phase 2: pose and shape too
+    n2 = options.iterations
+    groups = [[orient, transl, log_scale], [joint_rot], [shape_var]]
+    base_lr = [0.01, 0.03, 0.05]
+    opt = torch.optim.Adam([{"params": g, "lr": lr} for g, lr in zip(groups, base_lr, strict=True)])
+    decide_at = {n2 // 4, n2 // 2}
+    n_views = sum(o.has_keypoints for o in observations)
+    pose_prior = max(options.pose_prior_weight, options.single_view_pose_prior_weight / n_views ** 2)
+    for step in range(n2):
+        _cosine_lr(opt, base_lr, step, n2)
+        opt.zero_grad()
+        params = make_params(joint_rot)
+        out = model(params)
+        loss = options.keypoint_weight * problem.keypoint_term(out.coco17[0])
+        if options.silhouette_weight > 0:
+            loss = loss + options.silhouette_weight * problem.silhouette_term(out.vertices[0])
+        loss = loss + pose_prior * joint_rot.pow(2).sum(-1).mean()
+        loss = loss + options.shape_prior_weight * (params.shape - default_shape).pow(2).sum() / 0.25
+        loss = loss + scale_prior()
+        loss.backward()
+        opt.step()
+        history.append(float(loss.detach()))
+        if step in decide_at:
+            changed = problem.decide_swaps(out.coco17[0].detach())
+            if changed:
+                lg.debug("phase 2 step %d: %d left/right decisions changed", step, changed)
+
+    with torch.no_grad():
+        final = make_params(joint_rot).detach()
+        final.pose = final.pose.clone()
+        output = model(final)
+    problem.decide_swaps(output.coco17[0])
+
+    per_frame_pose = None
+    if options.refine_per_frame and options.refine_iterations > 0:
+        per_frame_pose = _refine_per_frame(problem, final, options, history)
+
+    with torch.no_grad():
+        proj, _ = project(output.coco17[0], problem.w2c, problem.K)
+    proj = proj.numpy()
+    kp, conf = problem.kp.numpy(), problem.conf.numpy()
+    err = np.linalg.norm(proj - kp, axis=-1)
+    reproj = np.array([float(np.sum(e * (c > 0)) / max(1, int(np.sum(c > 0)))) if np.any(c > 0) else np.nan
+                       for e, c in zip(err, conf, strict=True)])
+    warnings = [w for o in observations for w in o.warnings]
+    seconds = time.perf_counter() - t0
+    lg.info("fitted %s to %d frame(s) in %.1f s: reprojection %.1f px (mean), %d left/right swaps",
+            model.name, len(observations), seconds, float(np.nanmean(reproj)) if np.any(np.isfinite(reproj))
+            else float("nan"), int(problem.swapped.sum()))
+    return FitResult(
+        params=final, output=_detach(output), frame_indices=[o.index for o in observations],
+        reprojection_px=reproj, swapped=problem.swapped.copy(), keypoints=kp, confidences=conf, projected=proj,
+        per_frame_pose=per_frame_pose, loss_history=history, seconds=seconds, warnings=warnings,
+    )
+
+
+def _refine_per_frame(problem: _Problem, shared: BodyParams, options: FitOptions,
+                      history: list[float]) -> np.ndarray:
+    """Per-frame pose corrections (fitted joints only) on top of the shared fit, pulled towards it."""
+    model = problem.model
+    n = len(problem.obs)
+    ids = problem.fit_joint_ids
+    delta = torch.zeros(n, len(ids), 3, dtype=model.dtype, requires_grad=True)
+    opt = torch.optim.Adam([delta], lr=0.02)
+    batch = BodyParams(pose=shared.pose.expand(n, -1, -1).clone(), shape=shared.shape.expand(n, -1),
+                       global_orient=shared.global_orient.expand(n, -1), transl=shared.transl.expand(n, -1),
+                       scale=shared.scale.expand(n, -1))
+    for step in range(options.refine_iterations):
+        _cosine_lr(opt, [0.02], step, options.refine_iterations)
+        opt.zero_grad()
+        pose = batch.pose.clone()
+        pose[:, ids] = pose[:, ids] + delta
+        out = model(BodyParams(pose=pose, shape=batch.shape, global_orient=batch.global_orient,
+                               transl=batch.transl, scale=batch.scale))
+        # frame f sees body f: project each body into its own camera only
+        loss = options.keypoint_weight * problem.keypoint_term(out.coco17)
+        if options.silhouette_weight > 0:
+            loss = loss + options.silhouette_weight * problem.silhouette_term(out.vertices)
+        loss = loss + options.refine_prior_weight * delta.pow(2).sum(-1).mean()
+        loss.backward()
+        opt.step()
+        history.append(float(loss.detach()))
+    pose = batch.pose.clone()
+    pose[:, ids] = pose[:, ids] + delta.detach()
+    return pose.numpy()
+
+
+def _detach(out: BodyOutput) -> BodyOutput:
+    return BodyOutput(vertices=out.vertices.detach(), joints=out.joints.detach(), coco17=out.coco17.detach(),
+                      bone_transforms=out.bone_transforms.detach(), rest_vertices=out.rest_vertices.detach())
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+def render_masks(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, max_size: int = 512) -> np.ndarray:
+    """(N, h, w) coverage of the mesh rasterised by :mod:`humanvdm_core.render` in each camera, at
+    most ``max_size`` px on the long side (cameras rescaled)."""
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    s = min(1.0, max_size / max(cameras.width, cameras.height))
+    cams = cameras.scaled(max(1, round(cameras.width * s)), max(1, round(cameras.height * s))) if s < 1 else cameras
+    mesh = TexturedMesh(vertices=np.asarray(vertices, np.float32), faces=np.asarray(faces, np.int32))
+    return render_views(mesh, cams, (0.0, 0.0, 0.0)).rgba[..., 3]
+
+
+def silhouette_iou(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, masks: Sequence[np.ndarray],
+                   max_size: int = 512) -> np.ndarray:
+    """(N,) IoU of the rasterised mesh (coverage > 0.5) and each mask (> 0.5), per camera."""
+    import cv2
+
+    rendered = render_masks(vertices, faces, cameras, max_size)
+    out = []
+    for r, m in zip(rendered, masks, strict=True):
+        m = cv2.resize(np.asarray(m, np.float32), (r.shape[1], r.shape[0]), interpolation=cv2.INTER_AREA)
+        a, b = r > 0.5, m > 0.5
+        union = int(np.sum(a | b))
+        out.append(float(np.sum(a & b)) / union if union else 1.0)
+    return np.array(out)
+
+
+def joint_error_mm(fitted: np.ndarray, truth: np.ndarray, truth_height_m: float | None = None,
+                   fitted_height: float | None = None) -> float:
+    """Mean Euclidean distance in mm between corresponding 3D points (K, 3).
+
+    Both sets are in the same frame. When ``truth_height_m``/``fitted_height`` are given (the true
+    subject's height in metres, the frame's height of the subject), distances are rescaled from the
+    frame's units to metres of the true subject (the orbit frame normalises every subject to one
+    height), i.e. the error is scale-normalised to the true body size."""
+    d = np.linalg.norm(np.asarray(fitted, np.float64) - np.asarray(truth, np.float64), axis=-1)
+    factor = 1.0 if truth_height_m is None or fitted_height is None else truth_height_m / fitted_height
+    return float(d.mean() * factor * 1000.0)
+
+
+def coco_indices(names: Sequence[str]) -> list[int]:
+    return [COCO17_NAMES.index(n) for n in names]
+
+
+__all__ = [
+    "FIT_JOINTS", "FitOptions", "FitResult", "FrameObservation", "HumanVDMError", "SWAP_GROUPS",
+    "coco_indices", "fit_body", "joint_error_mm", "load_body_model", "observe_frames", "project", "render_masks",
+    "silhouette_iou",
+]

@@ -1,0 +1,266 @@
+"""Stage ``fit-smpl`` (paper section 3.3): fit a parametric body to the orbit frames.
+
+Input ``frames``: a frame set (:mod:`humanvdm_core.frames`; normally the 21-frame 576² orbit, whose
+last frame, azimuth 0, is the input photo's view). The person is detected (COCO-17 keypoints and
+mask) on ``fit_frames`` of them ("all" or a count spread evenly around the orbit, always including the
+frame nearest azimuth 0), and ONE static body is fitted to all of them
+(:func:`humanvdm_core.body.fit.fit_body`: keypoints + silhouettes + priors, left/right swaps of
+back views resolved against the 3D estimate). ``fit_frames=1`` is a single-photo fit.
+
+Output ``body``:
+
+- ``body.npz`` (schema ``humanvdm.body_fit`` v1): ``model_name``, ``backend``, ``topology``,
+  ``joint_names``, ``pose_joint_names``, ``shape_names``; the fitted ``BodyParams`` arrays ``pose``
+  (1, P, 3), ``shape`` (1, S), ``global_orient`` (1, 3), ``transl`` (1, 3), ``scale`` (1, 1); the
+  posed body in the frame set's world: ``vertices`` (V, 3), ``joints`` (J, 3), ``coco17`` (17, 3),
+  ``bone_transforms`` (J, 4, 4), ``rest_vertices`` (V, 3); ``faces`` (F, 3);
+  ``skinning_weights`` (V, J); the canonical body (the backend's da-pose with the fitted shape, unit
+  scale, no global transform): ``canonical_pose``, ``canonical_vertices`` (V, 3),
+  ``canonical_joints``, ``canonical_bone_transforms`` (J, 4, 4) (so
+  ``lbs(points, weights, bone_transforms[None], canonical_bone_transforms[None])`` poses canonical
+  points); per frame used (N): ``frame_indices``, ``frame_azimuth_deg``, ``keypoints`` (N, 17, 2)
+  (detections as used, after any left/right swap), ``keypoint_confidences`` (N, 17),
+  ``projected_coco17`` (N, 17, 2), ``reprojection_px`` (N,) (nan without keypoints), ``iou`` (N,),
+  ``lr_swapped`` (N, 3) (face, arms, legs); ``per_frame_pose`` (N, P, 3) only with
+  ``refine_per_frame``; the UV position map at ``uv_resolution`` R when the topology has a UV
+  layout (``has_uv_map``): ``uv_resolution``, ``uv_face_ids`` (M,), ``uv_barycentrics`` (M, 3),
+  ``uv_rows``/``uv_cols`` (M,), ``uv_mask`` (R, R), ``uv_positions`` (M, 3) on the canonical body,
+  ``uv_weights`` (M, J) skinning weights.
+- ``overlay.png``: up to four frames with the fitted mesh's outline (green), the detections (red)
+  and the model's keypoints (blue), for people.
+- ``report.json``: fit quality per frame and overall, frames used/skipped and why, warnings.
+
+Bad input: no person in any selected frame -> an error naming the frames; fewer usable frames than
+needed (at least ``min(3, selected)``, one of them with keypoints) -> an error saying how many.
+"""
+
+from __future__ import annotations
+
+from humanvdm_core.stage import Param, StageContext, StageSpec
+
+SCHEMA = "humanvdm.body_fit"
+SCHEMA_VERSION = 1
+
+SPEC = StageSpec(
+    name="fit-smpl",
+    summary="Fit a parametric body (Anny; SMPL/SMPL-X from your files) to the orbit frames: params, meshes, joints, UV position map.",
+    inputs={"frames": "frame set (RGBA frames + cameras), normally the 21-frame orbit"},
+    outputs={"body": "body.npz (fitted body, canonical body, UV position map), overlay.png, report.json"},
+    params={
+        "topology": Param("anny", "body mesh topology (only 'anny' has the UV layout the splats need)",
+                          choices=("anny", "notoes", "notoes_collapse10pc", "notoes_collapse5pc",
+                                   "notoes_collapse3pc")),
+        "uv_resolution": Param(256, "UV position map size (R x R texels)"),
+        "iterations": Param(250, "optimiser steps of the full fit (the global phase adds a third)"),
+        "fit_frames": Param("all", "frames to detect and fit on: 'all' or a count spread around the orbit "
+                                "(1 = the input view alone)"),
+        "seed": Param(0, "seed (silhouette vertex subsample)"),
+        "refine_per_frame": Param(False, "also fit a small per-frame pose correction (stored as per_frame_pose)"),
+        "keypoint_weight": Param(1.0, "weight of the 2D keypoint term"),
+        "silhouette_weight": Param(0.3, "weight of the silhouette term"),
+        "pose_prior_weight": Param(0.05, "weight of the pose prior (squared joint angles)"),
+        "single_view_pose_prior_weight": Param(1.0, "pose prior with one view; with n views it is "
+                                               "max(pose_prior_weight, this / n^2)"),
+        "shape_prior_weight": Param(0.05, "weight of the shape prior (distance from the average shape)"),
+        "model_dir": Param("~/.cache/humanvdm/weights/body_models",
+                           "smpl/smplx backends: folder holding smpl/SMPL_NEUTRAL.pkl or smplx/SMPLX_NEUTRAL.npz "
+                           "(your own download from smpl.is.tue.mpg.de / smpl-x.is.tue.mpg.de)",
+                           weights=True, backend=("smpl", "smplx")),
+        "gender": Param("neutral", "smpl/smplx backends: model gender", choices=("neutral", "male", "female")),
+    },
+    backends=("anny", "smpl", "smplx"),
+)
+
+
+def select_frames(azimuth_deg, spec: str) -> list[int]:
+    """Frame indices to use: all, or ``n`` spread evenly by azimuth starting at the frame nearest 0."""
+    import numpy as np
+
+    from humanvdm_core.errors import ConfigError
+
+    n_total = len(azimuth_deg)
+    key = spec.strip().lower()
+    if key == "all":
+        return list(range(n_total))
+    try:
+        n = int(key)
+    except ValueError:
+        raise ConfigError(f"param fit_frames: {spec!r} is neither 'all' nor a frame count") from None
+    if n < 1:
+        raise ConfigError(f"param fit_frames must be >= 1, got {n}")
+    az = np.asarray(azimuth_deg, dtype=np.float64)
+    start = int(np.argmin(np.abs((az + 180.0) % 360.0 - 180.0)))
+    order = np.argsort((az - az[start]) % 360.0, kind="stable")
+    n = min(n, n_total)
+    picks = np.floor(np.arange(n) * n_total / n).astype(np.int64)
+    return sorted(int(order[p]) for p in picks)
+
+
+def run(ctx: StageContext) -> None:
+    import json
+    from pathlib import Path
+
+    import numpy as np
+    import torch
+
+    from humanvdm_core.body.fit import FitOptions, fit_body, load_body_model, observe_frames, silhouette_iou
+    from humanvdm_core.errors import ConfigError, InputError
+    from humanvdm_core.frames import frame_paths, read_cameras, read_frames
+    from humanvdm_core.io import atomic_write_text, write_npz
+
+    p = ctx.params
+    if not 8 <= p["uv_resolution"] <= 4096:
+        raise ConfigError(f"param uv_resolution must be in [8, 4096], got {p['uv_resolution']}")
+    options = FitOptions(iterations=p["iterations"], keypoint_weight=p["keypoint_weight"],
+                         silhouette_weight=p["silhouette_weight"], pose_prior_weight=p["pose_prior_weight"],
+                         single_view_pose_prior_weight=p["single_view_pose_prior_weight"],
+                         shape_prior_weight=p["shape_prior_weight"], refine_per_frame=p["refine_per_frame"],
+                         seed=p["seed"])
+    options.check()
+    if ctx.backend == "anny":  # the body model first: a missing model file fails before any detection
+        model = load_body_model("anny", topology=p["topology"])
+    else:
+        model = load_body_model(ctx.backend, model_dir=Path(p["model_dir"]).expanduser(), gender=p["gender"])
+    root = ctx.inputs["frames"]
+    try:
+        paths = frame_paths(root)
+        cameras = read_cameras(root)
+    except FileNotFoundError as exc:
+        raise InputError(f"not a frame set: {exc}") from None
+    if len(paths) != len(cameras):
+        raise InputError(f"frame set {root} has {len(paths)} frames but {len(cameras)} cameras")
+    selected = select_frames(cameras.azimuth_deg, p["fit_frames"])
+    frames = read_frames(root, indices=selected)
+    names = [f"frame {paths[i].stem}" for i in selected]
+    ctx.log.info("detecting the person in %d of %d frames", len(selected), len(paths))
+    observations, failed = observe_frames(frames, list(range(len(selected))), names)
+    for o in observations:  # back to frame-set indices
+        o.index = selected[o.index]
+    failed = {selected[k]: v for k, v in failed.items()}
+    if not observations:
+        listed = ", ".join(f"{paths[i].stem}" for i in selected)
+        raise InputError(f"no person found in frames {listed} of {root}: every selected frame failed "
+                         f"(first: {next(iter(failed.values()))})")
+    with_kp = [o for o in observations if o.has_keypoints]
+    need = min(3, len(selected))
+    if len(observations) < need or not with_kp:
+        raise InputError(f"too few usable frames to fit the body: {len(observations)} of {len(selected)} usable "
+                         f"({len(with_kp)} with keypoints); at least {need}, one with keypoints, are needed. "
+                         f"Skipped: " + "; ".join(f"{paths[i].stem}: {why}" for i, why in failed.items()))
+
+    torch.manual_seed(p["seed"])
+    fit = fit_body(model, cameras, observations, options, logger=ctx.log)
+    used_cams = cameras.subset(fit.frame_indices)
+    faces = model.faces.numpy().astype(np.int64)
+    vertices = fit.output.vertices[0].numpy()
+    iou = silhouette_iou(vertices, faces, used_cams, [o.mask for o in observations])
+
+    with torch.no_grad():
+        canon_params = model.canonical_params(1)
+        canon_params.shape = fit.params.shape.clone()
+        canon = model(canon_params)
+    f32 = np.float32
+    arrays: dict[str, np.ndarray] = {
+        "model_name": np.array(model.name), "backend": np.array(ctx.backend), "topology": np.array(p["topology"]),
+        "joint_names": np.array(model.joint_names), "pose_joint_names": np.array(model.pose_joint_names),
+        "shape_names": np.array(model.shape_names),
+        **{k: v.astype(f32) for k, v in fit.params.to_numpy().items()},
+        "vertices": vertices.astype(f32), "faces": faces,
+        "joints": fit.output.joints[0].numpy().astype(f32), "coco17": fit.output.coco17[0].numpy().astype(f32),
+        "bone_transforms": fit.output.bone_transforms[0].numpy().astype(f32),
+        "rest_vertices": fit.output.rest_vertices[0].numpy().astype(f32),
+        "skinning_weights": model.skinning_weights.numpy().astype(f32),
+        "canonical_pose": canon_params.pose.numpy().astype(f32),
+        "canonical_vertices": canon.vertices[0].numpy().astype(f32),
+        "canonical_joints": canon.joints[0].numpy().astype(f32),
+        "canonical_bone_transforms": canon.bone_transforms[0].numpy().astype(f32),
+        "frame_indices": np.array(fit.frame_indices, dtype=np.int64),
+        "frame_azimuth_deg": used_cams.azimuth_deg.astype(np.float64),
+        "keypoints": fit.keypoints.astype(f32), "keypoint_confidences": fit.confidences.astype(f32),
+        "projected_coco17": fit.projected.astype(f32),
+        "reprojection_px": fit.reprojection_px.astype(np.float64), "iou": iou.astype(np.float64),
+        "lr_swapped": fit.swapped,
+        "has_uv_map": np.array(model.uvs is not None),
+    }
+    if fit.per_frame_pose is not None:
+        arrays["per_frame_pose"] = fit.per_frame_pose.astype(f32)
+    warnings = list(dict.fromkeys(fit.warnings))
+    if model.uvs is not None:
+        from humanvdm_core.body.uvmap import UVPositionMap
+
+        uvm = UVPositionMap.from_model(model, p["uv_resolution"])
+        arrays.update({
+            "uv_resolution": np.int64(uvm.resolution), "uv_face_ids": uvm.face_ids,
+            "uv_barycentrics": uvm.barycentrics.astype(f32), "uv_rows": uvm.rows, "uv_cols": uvm.cols,
+            "uv_mask": uvm.mask, "uv_positions": uvm.positions(canon.vertices[0].numpy()).astype(f32),
+            "uv_weights": uvm.weights(model.skinning_weights.numpy()).astype(f32),
+        })
+    else:
+        warnings.append(f"topology {p['topology']!r} has no UV layout: body.npz holds no UV position map "
+                        "(the splat stage needs one; use topology 'anny')")
+    out = ctx.outputs["body"]
+    write_npz(out / "body.npz", arrays, SCHEMA, SCHEMA_VERSION)
+    write_overlay(out / "overlay.png", frames, selected, fit, vertices, faces, cameras)
+
+    def r(x: float) -> float | None:
+        return None if not np.isfinite(x) else round(float(x), 3)
+
+    mean_reproj = float(np.nanmean(fit.reprojection_px)) if np.any(np.isfinite(fit.reprojection_px)) else np.nan
+    if np.isfinite(mean_reproj) and mean_reproj > 0.03 * cameras.height:
+        warnings.append(f"poor keypoint fit: mean reprojection error {mean_reproj:.1f} px")
+    if float(iou.mean()) < 0.75:
+        warnings.append(f"poor silhouette fit: mean IoU {float(iou.mean()):.2f}")
+    report = {
+        "schema": "humanvdm.body_fit_report", "version": 1, "model": model.name, "backend": ctx.backend,
+        "topology": p["topology"], "frames_total": len(paths), "frames_selected": selected,
+        "frames_used": fit.frame_indices,
+        "frames_skipped": {paths[i].stem: why for i, why in sorted(failed.items())},
+        "mean_reprojection_px": r(mean_reproj), "mean_iou": r(float(iou.mean())),
+        "per_frame": [{"frame": int(i), "azimuth_deg": r(float(a)), "reprojection_px": r(float(e)), "iou": r(float(u)),
+                       "lr_swapped": {g: bool(s) for g, s in zip(("face", "arms", "legs"), sw, strict=True)}}
+                      for i, a, e, u, sw in zip(fit.frame_indices, used_cams.azimuth_deg, fit.reprojection_px, iou,
+                                                fit.swapped, strict=True)],
+        "shape": {n: r(float(v)) for n, v in zip(model.shape_names, fit.params.shape[0].tolist(), strict=True)},
+        "scale": r(float(fit.params.scale)), "uv_resolution": p["uv_resolution"] if model.uvs is not None else None,
+        "warnings": warnings,
+    }
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
+    ctx.log.info("body fit: mean reprojection %.1f px, mean IoU %.3f over %d frame(s)%s", mean_reproj,
+                 float(iou.mean()), len(fit.frame_indices), f"; {len(warnings)} warning(s)" if warnings else "")
+
+
+def write_overlay(path, frames, selected, fit, vertices, faces, cameras, tiles: int = 4, tile_px: int = 256) -> None:
+    """Up to ``tiles`` used frames side by side: the fitted mesh's outline (green), detections (red),
+    the model's keypoints (blue)."""
+    import cv2
+    import numpy as np
+
+    from humanvdm_core.body.fit import render_masks
+    from humanvdm_core.io import write_png
+
+    used = fit.frame_indices
+    picks = sorted({used[int(k)] for k in np.floor(np.arange(min(tiles, len(used))) * len(used)
+                                                  / min(tiles, len(used))).astype(int)})
+    masks = render_masks(vertices, faces, cameras.subset(picks), max_size=tile_px)
+    row = []
+    for i, m in zip(picks, masks, strict=True):
+        j = used.index(i)
+        img = frames[selected.index(i)][..., :3]
+        s = tile_px / img.shape[0]
+        tile = cv2.resize(np.clip(img, 0, 1), (round(img.shape[1] * s), tile_px), interpolation=cv2.INTER_AREA)
+        tile = np.ascontiguousarray((tile * 255).astype(np.uint8))
+        m = cv2.resize(m, (tile.shape[1], tile.shape[0]), interpolation=cv2.INTER_LINEAR)
+        contours, _ = cv2.findContours((m > 0.5).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(tile, contours, -1, (40, 220, 40), 1, lineType=cv2.LINE_AA)
+        for k in range(17):
+            if fit.confidences[j, k] > 0:
+                x, y = fit.keypoints[j, k] * s
+                cv2.circle(tile, (int(round(x)), int(round(y))), 3, (230, 30, 30), -1, lineType=cv2.LINE_AA)
+            x, y = fit.projected[j, k] * s
+            cv2.circle(tile, (int(round(x)), int(round(y))), 2, (40, 80, 255), -1, lineType=cv2.LINE_AA)
+        row.append(tile)
+    write_png(path, np.concatenate(row, axis=1))
+
+
+if __name__ == "__main__":
+    raise SystemExit(SPEC.main(run))
