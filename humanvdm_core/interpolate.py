@@ -20,7 +20,8 @@ Contract (input and output are frame sets, see :mod:`humanvdm_core.frames`):
 
 Backends are functions chosen by name (:data:`BACKENDS`) with the signature
 ``(frame0, frame1, times, opts) -> list of frames``; a backend that only synthesises t = 0.5
-(PerVFI, RIFE) is run with the ``recursive`` schedule.  The ``embedded`` backend has two methods:
+(PerVFI) is run with the ``recursive`` schedule; ``rife`` (RIFE v4.6, local weights,
+:mod:`humanvdm_core.models.rife`) takes any t.  The ``embedded`` backend has two methods:
 
 - ``flow`` (default):
   1. bidirectional optical flow F_01, F_10 with OpenCV DIS on the luma, at ``flow_scale`` of the
@@ -67,6 +68,7 @@ class InterpolateOptions:
     flow_scale: float = 0.5
     preset: str = "fine"
     time_flow: str = "splat"
+    rife_weights: str = ""  # RIFE v4.6 flownet.pkl (backend "rife", humanvdm_core.models.rife)
 
     @property
     def factor(self) -> int:
@@ -255,7 +257,15 @@ def interpolate_embedded(frame0: np.ndarray, frame1: np.ndarray, times: Sequence
 
 # A backend synthesises frames between two RGBA key frames at the given fractions in (0, 1).
 InterpolateBackend = Callable[[np.ndarray, np.ndarray, Sequence[float], InterpolateOptions], list[np.ndarray]]
-BACKENDS: dict[str, InterpolateBackend] = {"embedded": interpolate_embedded}
+def interpolate_rife(frame0: np.ndarray, frame1: np.ndarray, times: Sequence[float],
+                     opts: InterpolateOptions) -> list[np.ndarray]:
+    """RIFE v4.6 from local weights (:mod:`humanvdm_core.models.rife`); any t (v4 takes t as input)."""
+    from humanvdm_core.models import rife
+
+    return rife.interpolate_pair(rife.load(opts.rife_weights), frame0, frame1, list(times))
+
+
+BACKENDS: dict[str, InterpolateBackend] = {"embedded": interpolate_embedded, "rife": interpolate_rife}
 
 
 def interpolate_interval(frame0: np.ndarray, frame1: np.ndarray, opts: InterpolateOptions,

@@ -20,6 +20,10 @@ the bright/dark halos an unsharp mask otherwise draws along the subject's silhou
 composited over the background there).  Alpha is resampled with the same kernel, never sharpened,
 and clamped to [0, 1].  Downscaling (input larger than the target) uses area averaging and no
 sharpening.
+
+Model backends (local weights, nothing downloaded; :mod:`humanvdm_core.models.upscalers`):
+``realesrgan`` (Real-ESRGAN RRDBNet on the whole frame, then resized to the target) and
+``codeformer`` (CodeFormer on detected faces, fidelity w, pasted onto a Real-ESRGAN background).
 """
 
 from __future__ import annotations
@@ -54,6 +58,12 @@ class UpscaleOptions:
     sharpen: float = DEFAULT_SHARPEN
     sharpen_sigma: float = DEFAULT_SHARPEN_SIGMA
     clamp: bool = True  # anti-halo clamp (off only to measure what it does)
+    # model backends (humanvdm_core.models.upscalers): local weight files and their settings
+    realesrgan_weights: str = ""  # Real-ESRGAN RRDBNet checkpoint (realesrgan; codeformer's background)
+    codeformer_weights: str = ""  # CodeFormer checkpoint (codeformer)
+    fidelity: float = 0.7  # CodeFormer's w: 0 = best quality, 1 = most faithful (paper: 0.7)
+    tile: int = 384  # Real-ESRGAN tile size in input pixels (0: whole frame at once)
+    max_faces: int = 4  # faces restored per frame, largest first
 
 
 # A backend maps one RGBA frame (H, W, 4) float32 to (target, target, 4) float32.
@@ -109,7 +119,22 @@ def upscale_embedded(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
     return np.concatenate([rgb, np.clip(alpha, 0.0, 1.0)[..., None]], axis=-1).astype(np.float32)
 
 
-BACKENDS: dict[str, UpscaleBackend] = {"embedded": upscale_embedded}
+def upscale_realesrgan(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
+    """Real-ESRGAN (local RRDBNet weights), see :mod:`humanvdm_core.models.upscalers`."""
+    from humanvdm_core.models.upscalers import upscale_realesrgan as run
+
+    return run(frame, opts)
+
+
+def upscale_codeformer(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
+    """CodeFormer faces on a Real-ESRGAN background, see :mod:`humanvdm_core.models.upscalers`."""
+    from humanvdm_core.models.upscalers import upscale_codeformer as run
+
+    return run(frame, opts)
+
+
+BACKENDS: dict[str, UpscaleBackend] = {"embedded": upscale_embedded, "realesrgan": upscale_realesrgan,
+                                       "codeformer": upscale_codeformer}
 
 
 def resample_layer_nearest(image: np.ndarray, size: int) -> np.ndarray:

@@ -3,6 +3,11 @@
 Reads a frame set, writes a frame set (see :mod:`humanvdm_core.interpolate` for the full contract):
 21 key frames become 81 with the default two ×2 passes; key frames are kept unchanged, the
 in-between cameras are slerped along the orbit; depth/normals layers are not carried over.
+
+Backends: ``embedded`` (optical flow, no weights; the default) and ``rife`` (RIFE v4.6 from the
+local ``--rife-weights`` flownet.pkl; with ``--schedule recursive`` it runs ×2 per pass as the paper
+does with PerVFI, with ``direct`` it synthesises t = 1/4, 1/2, 3/4 from the key pair).  Nothing is
+downloaded: a missing weight file stops the stage (exit 3) naming the file and where to get it.
 """
 
 from __future__ import annotations
@@ -25,8 +30,11 @@ SPEC = StageSpec(
                         choices=("ultrafast", "fast", "medium", "fine")),
         "time_flow": Param("splat", "in-between flows: splat (flow reversal) or approx (Super SloMo formula)",
                            choices=("splat", "approx")),
+        "rife_weights": Param("~/.cache/humanvdm/weights/rife-v4.6/flownet.pkl",
+                              "RIFE v4.6 IFNet checkpoint (MIT) from github.com/hzwer/Practical-RIFE",
+                              weights=True, backend="rife"),
     },
-    backends=("embedded",),
+    backends=("embedded", "rife"),
 )
 
 
@@ -40,7 +48,12 @@ def run(ctx: StageContext) -> None:
     if not 0.0 < p["flow_scale"] <= 1.0:
         raise ConfigError(f"interpolate.flow_scale must be in (0, 1], got {p['flow_scale']}")
     opts = InterpolateOptions(passes=p["passes"], method=p["method"], schedule=p["schedule"],
-                              flow_scale=p["flow_scale"], preset=p["preset"], time_flow=p["time_flow"])
+                              flow_scale=p["flow_scale"], preset=p["preset"], time_flow=p["time_flow"],
+                              rife_weights=p["rife_weights"])
+    if ctx.backend == "rife":  # fail before reading any frame
+        from humanvdm_core.models import rife
+
+        rife.load(opts.rife_weights)
     interpolate_frame_set(ctx.inputs["frames"], ctx.outputs["frames"], opts, backend=ctx.backend,
                           attrs=ctx.attrs(), log=ctx.log)
 

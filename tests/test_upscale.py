@@ -169,7 +169,8 @@ def test_stage_defaults_match_the_library():
     from humanvdm_core import upscale
     from stages.upscale import SPEC
 
-    defaults = {k: p.default for k, p in SPEC.params.items()}
+    defaults = {k: p.default for k, p in SPEC.params.items() if not p.weights}
     assert defaults == {"target_size": upscale.DEFAULT_TARGET_SIZE, "method": "lanczos",
-                        "sharpen": upscale.DEFAULT_SHARPEN, "sharpen_sigma": upscale.DEFAULT_SHARPEN_SIGMA}
+                        "sharpen": upscale.DEFAULT_SHARPEN, "sharpen_sigma": upscale.DEFAULT_SHARPEN_SIGMA,
+                        "fidelity": upscale.UpscaleOptions().fidelity, "tile": upscale.UpscaleOptions().tile}
     assert SPEC.backends == tuple(upscale.BACKENDS)
