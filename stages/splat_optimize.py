@@ -1,0 +1,152 @@
+"""Stage ``splat-optimize`` (paper section 3.3 + supplement): fit a body-anchored Gaussian human to the frames.
+
+Inputs: ``frames`` (a frame set, normally the 81-frame 1080² interpolated orbit; every frame is a training
+view) and ``body`` (``body.npz`` from ``fit-smpl``, schema ``humanvdm.body_fit`` v1). The model and the loss
+are :mod:`humanvdm_core.splat.human`'s: one Gaussian per valid UV texel of the body (``uv_resolution``²
+map; the UV map is rebuilt from the body model when it differs from the fit's), a feature tensor + MLP
+decoder for offsets / colours / scales, LBS posing with joint pose refinement, 0.8 L1 + 0.2 (1 - SSIM)
+(+ 0.2 LPIPS with ``lpips_weights``) + 10 offset² + 1 scale² + 1 feature², Adam lr 3e-3, 2 views a batch.
+
+Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``uv_resolution`` /
+``train_resolution`` / ``iterations`` / ``tile_size`` unless those params are set (non-zero):
+``tiny`` (64 -> ~2.6k Gaussians, 64², 100 iterations: tests), ``cpu`` (a CPU run of minutes),
+``full`` (paper size: ~203k Gaussians, 1080², for a GPU with gsplat).
+
+Output ``gaussians``:
+
+- ``gaussians.npz`` (schema ``humanvdm.gaussians`` v1, see :func:`humanvdm_core.splat.human.gaussians_arrays`):
+  posed ``means``, ``quats`` (wxyz), ``scales`` (linear), ``opacities``, ``colors`` (sRGB [0, 1]),
+  ``canonical_means``, ``skinning_weights``, UV texel indices, refined ``pose``/``transl``, ``background``;
+- ``point_cloud.ply``: the standard 3DGS binary PLY (opens in common splat viewers);
+- ``turntable/NNNN.png`` (``turntable_views`` views at ``turntable_size``², on the input orbit's
+  elevation and radius) and ``turntable.gif``, for people (``turntable_views=0`` skips them);
+- ``train_log.json``: loss curve, wall time, final training PSNR, resolved settings.
+
+Deterministic: same inputs + params + seed -> identical ``gaussians.npz`` and PLY bytes on one machine.
+"""
+
+from __future__ import annotations
+
+from humanvdm_core.stage import Param, StageContext, StageSpec
+
+SPEC = StageSpec(
+    name="splat-optimize",
+    summary="Fit body-anchored 3D Gaussians (UV position map + features + MLP decoder) to the orbit frames.",
+    inputs={"frames": "frame set (RGBA frames + cameras), normally the 81-frame interpolated orbit",
+            "body": "body fit directory holding body.npz (fit-smpl)"},
+    outputs={"gaussians": "gaussians.npz, point_cloud.ply (3DGS), turntable/ + turntable.gif, train_log.json"},
+    params={
+        "preset": Param("auto", "size/quality preset (auto: full with CUDA, else cpu)",
+                        choices=("auto", "tiny", "cpu", "full")),
+        "uv_resolution": Param(0, "UV map size R (Gaussian count ~0.62 R^2); 0: from the preset"),
+        "train_resolution": Param(0, "training image size in pixels; 0: from the preset"),
+        "iterations": Param(0, "optimiser steps; 0: from the preset"),
+        "tile_size": Param(0, "rasterizer tile size; 0: from the preset"),
+        "scale_mode": Param("isotropic", "Gaussian scales: one (isotropic) or three per Gaussian",
+                            choices=("isotropic", "anisotropic")),
+        "feature_dim": Param(16, "channels of the optimisable feature tensor"),
+        "hidden": Param(64, "width of the decoder MLP"),
+        "refine_pose": Param(True, "jointly refine the body pose and translation"),
+        "lr": Param(3e-3, "Adam learning rate (features, decoder)"),
+        "pose_lr": Param(3e-4, "Adam learning rate of the pose/translation refinement"),
+        "batch_views": Param(2, "training views per step"),
+        "l1_weight": Param(0.8, "weight of the L1 term"),
+        "ssim_weight": Param(0.2, "weight of the (1 - SSIM) term"),
+        "lpips_weight": Param(0.2, "weight of the LPIPS term (only with lpips_weights)"),
+        "lpips_weights": Param("", "local LPIPS weight file; empty: no LPIPS term", weights=True),
+        "offset_weight": Param(10.0, "weight of the offset^2 regulariser"),
+        "scale_weight": Param(1.0, "weight of the scale^2 regulariser"),
+        "feature_weight": Param(1.0, "weight of the feature^2 regulariser"),
+        "mask_weight": Param(0.0, "weight of an L1 term on the rendered vs the frames' alpha (0: off, as the paper)"),
+        "seed": Param(0, "seed (feature/decoder initialisation, view order)"),
+        "turntable_views": Param(36, "turntable renders (0: none)"),
+        "turntable_size": Param(512, "turntable render size in pixels"),
+    },
+    backends=("embedded",),
+)
+
+
+def resolve_settings(p: dict, cuda: bool) -> dict:
+    """The preset's uv_resolution / train_resolution / iterations / tile_size with explicit params applied."""
+    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.splat.human import PRESETS
+
+    name = p["preset"] if p["preset"] != "auto" else ("full" if cuda else "cpu")
+    out = {"preset": name, **PRESETS[name]}
+    for key in ("uv_resolution", "train_resolution", "iterations", "tile_size"):
+        if p[key] < 0:
+            raise ConfigError(f"param {key} must be >= 0, got {p[key]}")
+        if p[key] > 0:
+            out[key] = p[key]
+    if not 8 <= out["uv_resolution"] <= 4096:
+        raise ConfigError(f"param uv_resolution must be in [8, 4096], got {out['uv_resolution']}")
+    if not 16 <= out["train_resolution"] <= 8192:
+        raise ConfigError(f"param train_resolution must be in [16, 8192], got {out['train_resolution']}")
+    return out
+
+
+def run(ctx: StageContext) -> None:
+    import numpy as np
+    import torch
+
+    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.frames import read_cameras
+    from humanvdm_core.io import write_npz, write_png
+    from humanvdm_core.splat import human as H
+
+    p = ctx.params
+    cuda = torch.cuda.is_available()
+    s = resolve_settings(p, cuda)
+    if p["turntable_views"] < 0 or p["turntable_size"] < 16:
+        raise ConfigError("turntable_views must be >= 0 and turntable_size >= 16")
+    if p["lpips_weights"]:  # fail before any work when the file is missing
+        from humanvdm_core.errors import require_weights
+
+        require_weights(p["lpips_weights"], "LPIPS weights for the splat loss", "the LPIPS project's releases")
+    device = torch.device("cuda" if cuda else "cpu")
+    torch.manual_seed(p["seed"])
+    body_path = ctx.inputs["body"]
+    body_path = body_path / "body.npz" if body_path.is_dir() else body_path
+    anchor = H.load_body_anchor(body_path, s["uv_resolution"], load_model=p["refine_pose"])
+    views = H.load_views(ctx.inputs["frames"], s["train_resolution"])
+    cameras = read_cameras(ctx.inputs["frames"])
+    ctx.log.info("preset %s: %d Gaussians (UV %d²), %d views at %d², %d iterations on %s", s["preset"],
+                 len(anchor.rows), s["uv_resolution"], len(views.images), s["train_resolution"], s["iterations"],
+                 device.type)
+    human = H.GaussianHuman(anchor, feature_dim=p["feature_dim"], hidden=p["hidden"], scale_mode=p["scale_mode"],
+                            refine_pose=p["refine_pose"], seed=p["seed"]).to(device)
+    config = H.FitConfig(
+        iterations=s["iterations"], lr=p["lr"], pose_lr=p["pose_lr"], batch_views=p["batch_views"],
+        l1_weight=p["l1_weight"], ssim_weight=p["ssim_weight"], lpips_weight=p["lpips_weight"],
+        lpips_weights=p["lpips_weights"], offset_weight=p["offset_weight"], scale_weight=p["scale_weight"],
+        feature_weight=p["feature_weight"], mask_weight=p["mask_weight"], seed=p["seed"],
+        tile_size=s["tile_size"], log_every=max(1, s["iterations"] // 50))
+    result = H.fit_gaussians(human, views, config, log=ctx.log.debug)
+    ctx.log.info("trained in %.1f s: loss %.4f -> %.4f, training PSNR %.2f dB", result.wall_s,
+                 result.losses[0] if result.losses else float("nan"),
+                 result.losses[-1] if result.losses else float("nan"), result.train_psnr)
+
+    out = ctx.outputs["gaussians"]
+    background = views.background.cpu().numpy()
+    arrays = H.gaussians_arrays(human, background)
+    write_npz(out / "gaussians.npz", arrays, H.GAUSSIANS_SCHEMA, H.GAUSSIANS_VERSION)
+    H.write_ply(out / "point_cloud.ply", arrays["means"], arrays["quats"], arrays["scales"], arrays["opacities"],
+                arrays["colors"])
+    if p["turntable_views"] > 0:
+        from PIL import Image
+
+        cams = H.turntable_cameras(cameras, p["turntable_views"], p["turntable_size"])
+        images = H.render_views_np(human, cams, background, tile_size=s["tile_size"])
+        (out / "turntable").mkdir()
+        for i, img in enumerate(images):
+            write_png(out / "turntable" / f"{i:04d}.png", img)
+        frames = [Image.fromarray(np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)) for img in images]
+        frames[0].save(out / "turntable.gif", save_all=True, append_images=frames[1:], duration=80, loop=0)
+    H.write_train_log(out / "train_log.json", result, {
+        "settings": s, "num_gaussians": human.num_gaussians, "num_views": int(len(views.images)),
+        "device": device.type, "refined_pose_max_abs_rad": float(human.delta_pose.detach().abs().max()),
+        "refined_transl": [round(float(v), 6) for v in human.delta_transl.detach().cpu()]})
+
+
+if __name__ == "__main__":
+    raise SystemExit(SPEC.main(run))
