@@ -192,8 +192,9 @@ class Scheduler:
         sd = self.pipeline.stages[stage]
         out = {}
         for name, p in sd.spec.params.items():
-            if p.weights and p.applies_to(sd.backend):
-                path = Path(str(self.params[stage][name])).expanduser()
+            value = str(self.params[stage][name]).strip()
+            if p.weights and p.applies_to(sd.backend) and value:  # "" means: not used
+                path = Path(value).expanduser()
                 if path.is_file():
                     out[name] = self.store.stat_cache.file_hash(path)
                 elif path.is_dir():  # a folder of model files (e.g. SMPL's)
