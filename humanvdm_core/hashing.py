@@ -42,8 +42,11 @@ def list_files(root: str | os.PathLike) -> list[str]:
     """Sorted relative posix paths of the regular files under ``root`` (links are refused)."""
     root = os.fspath(root)
     out = []
-    for dirpath, _dirnames, filenames in os.walk(root):
+    for dirpath, dirnames, filenames in os.walk(root):
         rel_dir = os.path.relpath(dirpath, root)
+        for name in dirnames:  # os.walk lists links to folders here and does not enter them
+            if os.path.islink(os.path.join(dirpath, name)):
+                raise ValueError(f"symbolic links are not allowed in artifacts: {os.path.join(dirpath, name)}")
         for name in filenames:
             full = os.path.join(dirpath, name)
             if os.path.islink(full):

@@ -160,3 +160,10 @@ def test_exr_roundtrip_half_with_attributes(tmp_path):
     assert attrs["humanvdm:stage"] == "test" and attrs["humanvdm:frame_index"] == 3
     assert attrs["oiio:ColorSpace"] and attrs["channels"] == ["R", "G", "B", "A"]
     assert len(attrs["humanvdm:pixel_hash"]) == 32
+
+
+def test_links_are_refused_in_artifacts(tmp_path):
+    d = make_dir(tmp_path / "d", {"a.txt": b"a"})
+    (d / "linked_dir").symlink_to(tmp_path)
+    with pytest.raises(ValueError, match="symbolic links"):
+        hash_tree(d)
