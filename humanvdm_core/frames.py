@@ -74,6 +74,21 @@ def read_frames(root: str | Path, layer: str = FRAMES_DIR, indices: Sequence[int
     return np.stack([read_exr(p) for p in paths])
 
 
+def open_frame_set(root: str | Path) -> tuple[list[Path], Cameras]:
+    """The frame paths and cameras of a frame set, checked to match; InputError when they cannot
+    be read or do not match (the user-facing check every stage reading frames makes)."""
+    from humanvdm_core.errors import InputError
+
+    try:
+        paths = frame_paths(root)
+        cameras = read_cameras(root)
+    except (FileNotFoundError, ValueError) as e:
+        raise InputError(f"not a usable frame set: {e}") from None
+    if len(paths) != len(cameras):
+        raise InputError(f"frame set {root}: {len(paths)} frames but {len(cameras)} cameras")
+    return paths, cameras
+
+
 def read_cameras(root: str | Path) -> Cameras:
     path = Path(root) / CAMERAS_FILE
     if not path.exists():

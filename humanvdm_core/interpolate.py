@@ -51,7 +51,7 @@ import numpy as np
 
 from humanvdm_core.cameras import Cameras, upsample_cameras
 from humanvdm_core.errors import InputError
-from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, frame_paths, read_cameras
+from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, open_frame_set
 from humanvdm_core.io import read_exr, write_exr
 
 METHODS = ("flow", "crossfade")
@@ -291,15 +291,9 @@ def check_frame_set(root: Path) -> tuple[list[Path], Cameras, int, int]:
     """Validate an RGBA frame set with >= 2 frames of one size; returns (paths, cameras, height, width)."""
     import OpenImageIO as oiio
 
-    try:
-        paths = frame_paths(root)
-        cams = read_cameras(root)
-    except FileNotFoundError as e:
-        raise InputError(str(e)) from None
+    paths, cams = open_frame_set(root)
     if len(paths) < 2:
         raise InputError(f"frame set {root}: interpolation needs at least 2 frames, found {len(paths)}")
-    if len(cams) != len(paths):
-        raise InputError(f"frame set {root}: {len(paths)} frames but {len(cams)} cameras")
     shapes = []
     for p in paths:
         inp = oiio.ImageInput.open(str(p))

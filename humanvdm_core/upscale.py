@@ -37,7 +37,7 @@ import numpy as np
 
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.errors import InputError
-from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, frame_paths, read_cameras
+from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, open_frame_set
 from humanvdm_core.io import read_exr, write_exr
 
 DEFAULT_TARGET_SIZE = 1080
@@ -163,13 +163,7 @@ def _frame_shape(path: Path) -> tuple[int, int, int]:
 def check_frame_set(root: Path) -> tuple[list[Path], Cameras, int]:
     """Validate a frame set of square RGBA frames of one size; returns (frame paths, cameras, size)."""
     root = Path(root)
-    try:
-        paths = frame_paths(root)
-        cams = read_cameras(root)
-    except FileNotFoundError as e:
-        raise InputError(str(e)) from None
-    if len(cams) != len(paths):
-        raise InputError(f"frame set {root}: {len(paths)} frames but {len(cams)} cameras")
+    paths, cams = open_frame_set(root)
     h, w, c = _frame_shape(paths[0])
     if c != 4:
         raise InputError(f"frame set {root}: frames must be RGBA (4 channels), {paths[0].name} has {c}")

@@ -323,7 +323,7 @@ def run(ctx: StageContext) -> None:
     from humanvdm_core import metrics as M
     from humanvdm_core.cameras import Cameras, orbit_cameras
     from humanvdm_core.errors import ConfigError, InputError
-    from humanvdm_core.frames import frame_paths, read_cameras, read_frame
+    from humanvdm_core.frames import open_frame_set, read_frame
     from humanvdm_core.io import atomic_write_text, write_png
 
     p = ctx.params
@@ -337,13 +337,7 @@ def run(ctx: StageContext) -> None:
 
     g = load_gaussians(ctx.inputs["gaussians"])
     frames_dir = ctx.inputs["frames"]
-    try:
-        cams = read_cameras(frames_dir)
-        paths = frame_paths(frames_dir)
-    except (FileNotFoundError, ValueError) as e:
-        raise InputError(f"frames input {frames_dir}: {e}") from None
-    if len(paths) != len(cams):
-        raise InputError(f"frame set {frames_dir}: {len(paths)} frames but {len(cams)} cameras")
+    paths, cams = open_frame_set(frames_dir)
     if "background" in cams.extra:
         background = np.asarray(cams.extra["background"], dtype=np.float64).reshape(3)
     elif "background" in g:

@@ -105,7 +105,7 @@ def run(ctx: StageContext) -> None:
 
     from humanvdm_core.body.fit import FitOptions, fit_body, load_body_model, observe_frames, silhouette_iou
     from humanvdm_core.errors import ConfigError, InputError
-    from humanvdm_core.frames import frame_paths, read_cameras, read_frames
+    from humanvdm_core.frames import open_frame_set, read_frames
     from humanvdm_core.io import atomic_write_text, write_npz
 
     p = ctx.params
@@ -122,13 +122,7 @@ def run(ctx: StageContext) -> None:
     else:
         model = load_body_model(ctx.backend, model_dir=Path(p["model_dir"]).expanduser(), gender=p["gender"])
     root = ctx.inputs["frames"]
-    try:
-        paths = frame_paths(root)
-        cameras = read_cameras(root)
-    except FileNotFoundError as exc:
-        raise InputError(f"not a frame set: {exc}") from None
-    if len(paths) != len(cameras):
-        raise InputError(f"frame set {root} has {len(paths)} frames but {len(cameras)} cameras")
+    paths, cameras = open_frame_set(root)
     selected = select_frames(cameras.azimuth_deg, p["fit_frames"])
     frames = read_frames(root, indices=selected)
     names = [f"frame {paths[i].stem}" for i in selected]

@@ -383,15 +383,9 @@ def resample(frame: np.ndarray, size: int) -> np.ndarray:
 
 def load_views(root: str | Path, size: int, indices: list[int] | None = None) -> TrainingViews:
     """Read a frame set (one frame at a time) at ``size``² with matching cameras."""
-    from humanvdm_core.frames import frame_paths, read_cameras, read_frame
+    from humanvdm_core.frames import open_frame_set, read_frame
 
-    try:
-        paths = frame_paths(root)
-        cameras = read_cameras(root)
-    except FileNotFoundError as exc:
-        raise InputError(f"not a frame set: {exc}") from None
-    if len(paths) != len(cameras):
-        raise InputError(f"frame set {root} has {len(paths)} frames but {len(cameras)} cameras")
+    paths, cameras = open_frame_set(root)
     if cameras.width != cameras.height:
         raise InputError(f"frames must be square, got {cameras.width}x{cameras.height}")
     idx = list(range(len(paths))) if indices is None else list(indices)
