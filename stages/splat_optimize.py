@@ -121,7 +121,7 @@ def run(ctx: StageContext) -> None:
         lpips_weights=p["lpips_weights"], offset_weight=p["offset_weight"], scale_weight=p["scale_weight"],
         feature_weight=p["feature_weight"], mask_weight=p["mask_weight"], seed=p["seed"],
         tile_size=s["tile_size"], log_every=max(1, s["iterations"] // 50))
-    result = H.fit_gaussians(human, views, config, log=ctx.log.debug)
+    result = H.fit_gaussians(human, views, config, log=ctx.log.info)  # progress in the stage log
     ctx.log.info("trained in %.1f s: loss %.4f -> %.4f, training PSNR %.2f dB", result.wall_s,
                  result.losses[0] if result.losses else float("nan"),
                  result.losses[-1] if result.losses else float("nan"), result.train_psnr)

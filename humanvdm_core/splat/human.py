@@ -433,7 +433,7 @@ class FitConfig:
     mask_weight: float = 0.0
     seed: int = 0
     tile_size: int = 16
-    log_every: int = 10
+    log_every: int = 25
 
     def check(self) -> None:
         if self.iterations < 0:
