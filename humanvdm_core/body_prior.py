@@ -1,0 +1,335 @@
+"""The ``body-prior`` backend of the ``diffuse`` stage: a photo -> an orbit of the person, WITHOUT a
+learned video model.
+
+This is a deterministic, geometric STAND-IN for the learned multi-view prior (SV3D, fine-tuned on
+humans; paper section 3.1). It keeps the pipeline runnable end to end on a CPU and gives the later
+stages a frame set in exactly the contract the learned backend will produce. Its unseen views are a
+coloured body model, not a plausible reconstruction of clothing, hair or anything loose.
+
+Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
+
+1. Input view (:func:`prepare_input_view`, SV3D-style preprocessing): the photo is loaded and the
+   person detected (:func:`humanvdm_core.perception.detect_person`; :class:`InputError` when there is
+   no usable person). The photo is scaled so the person's bounding box spans ``fill`` of the frame
+   height (or 0.95 of its width if that is smaller), the box centre is moved to the frame centre,
+   and the result is composited over ``background`` through the person mask: a ``size``² RGBA image
+   (A = the mask) plus the keypoints in its pixels. ``fill`` is the orbit's framing: a subject
+   :data:`SUBJECT_HEIGHT` tall at the origin spans ``fill`` of the frame at the orbit radius
+   (:func:`humanvdm_core.scans.framing_radius`).
+2. Cameras: ``orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(...))`` (the
+   SV3D_p orbit; the last frame, azimuth 0, is the input view); ``extra["background"]`` and
+   ``extra["fill"]`` are set.
+3. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
+   azimuth-0 camera and one observation).
+4. Colour (:func:`colour_body`), per vertex of the posed body:
+
+   * visible in the input view (its camera depth within :data:`DEPTH_TOLERANCE` of the body's own
+     rendered depth there): the photo's colour at its projection (bilinear);
+   * hidden (the back): the colour of the *front point* at the same world (x, y), i.e. what the
+     photo shows at the projection of (x, y, z_front) - a mirror of the front through the body's
+     front/back; z_front is found by two fixed-point steps on the rendered depth;
+   * hidden head vertices (skinning weight on ``head``/``eye.*``) blend towards the median hair
+     colour sampled at the top of the head in the photo, so the back of the head has no face;
+   * the visible/hidden switch is smoothed over the mesh (:data:`BOUNDARY_SMOOTHING` neighbour
+     averages), and hidden colours are averaged a little more.
+
+   The photo is sampled through a copy whose background is filled with the nearest person pixel, so
+   a body vertex that falls just outside the person mask still gets the person's colour.
+5. Frames: the coloured body rendered with vertex colours at every orbit camera over
+   ``background`` (RGBA, A = coverage); the azimuth-0 frame is then REPLACED by the preprocessed
+   input view itself, so the input view is exact.
+
+``frames`` is (N, size, size, 4) float32 (RGB sRGB values over ``background``), ``cameras`` a
+:class:`~humanvdm_core.cameras.Cameras`. Deterministic: same photo and arguments, same output (on one
+machine). Known limits: loose clothing, long hair, skirts and held objects are cut to the body's
+silhouette in every view but the input one; the back is a mirror of the front (a front print shows on
+the back); the body's limb depth is a single-view guess.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from humanvdm_core.cameras import Cameras, orbit_cameras
+from humanvdm_core.scans import TexturedMesh, framing_radius
+
+log = logging.getLogger("humanvdm.body_prior")
+
+FOV_DEG = 33.8  # SV3D_p's vertical field of view
+SUBJECT_HEIGHT = 1.7  # the framing assumes a subject this tall (world units) at the origin
+DEFAULT_FILL = 0.85
+MAX_WIDTH_FILL = 0.95  # a wide pose (arms out) may span at most this fraction of the frame width
+DEPTH_TOLERANCE = 0.02  # world units: a vertex this close behind the rendered surface is visible
+HEAD_JOINTS = ("head", "eye.L", "eye.R")
+BOUNDARY_SMOOTHING = 3  # neighbour-average passes on the visible/hidden weight
+BACK_SMOOTHING = 2  # neighbour-average passes on the hidden vertices' colours
+HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampled for the hair colour
+
+
+@dataclass
+class InputView:
+    """The preprocessed input view: ``rgba`` (S, S, 4) float32 (RGB over the background, A = mask),
+    ``keypoints`` (17, 2) pixels and ``confidences`` (17,) in its pixels, the scale applied to the photo."""
+
+    rgba: np.ndarray
+    keypoints: np.ndarray
+    confidences: np.ndarray
+    scale: float
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def mask(self) -> np.ndarray:
+        return self.rgba[..., 3]
+
+
+@dataclass
+class BodyProxy:
+    """A coloured body fitted to one photo, with the orbit it is rendered along."""
+
+    input_view: InputView
+    mesh: TexturedMesh  # posed body with vertex colours, in the orbit's world
+    cameras: Cameras  # the orbit (extra: background, fill)
+    front_index: int  # the orbit frame at azimuth 0 (the input view)
+    background: tuple[float, float, float]
+    reprojection_px: float  # mean keypoint reprojection error of the single-view fit
+    warnings: list[str] = field(default_factory=list)
+
+    def render(self, cameras: Cameras | None = None) -> np.ndarray:
+        """(N, H, W, 4) float32 renders of the coloured body (default: the orbit), no replacement."""
+        from humanvdm_core.render import render_views
+
+        return render_views(self.mesh, self.cameras if cameras is None else cameras, self.background).rgba
+
+    def orbit_frames(self) -> np.ndarray:
+        """The orbit's frames with the azimuth-0 frame replaced by the input view (contract step 5)."""
+        frames = self.render()
+        frames[self.front_index] = self.input_view.rgba
+        return frames
+
+
+def resolve_photo(path: str | Path) -> Path:
+    """The photo a ``photo`` artifact names: the file itself, or a folder's ``input.*`` (else its one file)."""
+    from humanvdm_core.errors import InputError
+
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.is_dir():
+        raise InputError(f"photo not found: {path}")
+    candidates = sorted(p for p in path.glob("input.*") if p.is_file())
+    if not candidates:
+        candidates = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+    if len(candidates) != 1:
+        raise InputError(f"photo folder {path} must hold one photo (input.<ext>); found {len(candidates)} files")
+    return candidates[0]
+
+
+def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_FILL,
+                       background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> InputView:
+    """Load and detect the person, then crop/scale/centre/composite (contract step 1)."""
+    from humanvdm_core.perception import detect_person, load_photo
+
+    photo = load_photo(resolve_photo(photo_path))
+    det = detect_person(photo)
+    x0, y0, x1, y1 = det.bbox
+    scale = min(fill * size / max(y1 - y0, 1.0), MAX_WIDTH_FILL * size / max(x1 - x0, 1.0))
+    rgb, mask = photo.rgb, det.mask.astype(np.float32)
+    h, w = rgb.shape[:2]
+    new_w, new_h = max(1, round(w * scale)), max(1, round(h * scale))
+    interp = cv2.INTER_AREA if scale < 1.0 else cv2.INTER_LINEAR
+    rgb = cv2.resize(rgb, (new_w, new_h), interpolation=interp)
+    mask = cv2.resize(mask, (new_w, new_h), interpolation=interp)
+    sx, sy = new_w / w, new_h / h  # the scale actually applied per axis (rounding)
+    cx, cy = 0.5 * (x0 + x1) * sx, 0.5 * (y0 + y1) * sy
+    shift = np.array([[1.0, 0.0, size / 2.0 - cx], [0.0, 1.0, size / 2.0 - cy]])
+    rgb = cv2.warpAffine(rgb, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    mask = cv2.warpAffine(mask, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0.0)
+    mask = np.clip(mask, 0.0, 1.0)
+    bg = np.asarray(background, np.float32)
+    rgba = np.empty((size, size, 4), np.float32)
+    rgba[..., :3] = np.clip(rgb, 0.0, 1.0) * mask[..., None] + bg * (1.0 - mask[..., None])
+    rgba[..., 3] = mask
+    keypoints = det.keypoints.astype(np.float64) * np.array([sx, sy]) + shift[:, 2]
+    return InputView(rgba=rgba, keypoints=keypoints.astype(np.float32),
+                     confidences=det.confidences.astype(np.float32), scale=float(scale),
+                     warnings=list(det.warnings))
+
+
+# ----------------------------------------------------------------------------- colouring helpers
+
+def _project(points: np.ndarray, camera: Cameras) -> tuple[np.ndarray, np.ndarray]:
+    """World points (V, 3) into camera 0 of ``camera``: pixel coordinates (V, 2) and camera z (V,)."""
+    w2c, K = camera.w2c[0], camera.K[0]
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    px = cam[:, :2] / np.maximum(z, 1e-6)[:, None] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    return px, z
+
+
+def _lookup(image: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Nearest-pixel values of ``image`` (H, W[, C]) at pixel coordinates ``px`` (V, 2), clamped inside."""
+    h, w = image.shape[:2]
+    col = np.clip(np.floor(px[:, 0]).astype(np.int64), 0, w - 1)
+    row = np.clip(np.floor(px[:, 1]).astype(np.int64), 0, h - 1)
+    return image[row, col]
+
+
+def _bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Bilinear samples (V, C) of ``image`` (H, W, C) at pixel coordinates (pixel centres at +0.5)."""
+    mx = (px[:, 0] - 0.5).astype(np.float32).reshape(-1, 1)
+    my = (px[:, 1] - 0.5).astype(np.float32).reshape(-1, 1)
+    out = cv2.remap(np.ascontiguousarray(image, dtype=np.float32), mx, my, interpolation=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(len(px), -1)
+
+
+def fill_from_nearest(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A copy of ``rgb`` whose pixels outside the (slightly eroded) person mask take the colour of the
+    nearest person pixel, so samples near the silhouette never pick up the background."""
+    person = mask > 0.5
+    inner = cv2.erode(person.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    if inner.sum() >= 16:
+        person = inner
+    if not person.any():
+        return rgb.copy()
+    src = np.where(person, 0, 1).astype(np.uint8)  # distance to the nearest zero pixel = person pixel
+    _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    rows, cols = np.nonzero(person)
+    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
+    by_label[labels[rows, cols]] = np.stack([rows, cols], axis=1)
+    where = by_label[labels]
+    return rgb[where[..., 0], where[..., 1]]
+
+
+def _smooth(values: np.ndarray, faces: np.ndarray, passes: int, update: np.ndarray | None = None) -> np.ndarray:
+    """``passes`` rounds of averaging each vertex with its mesh neighbours (only ``update`` vertices change)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = np.concatenate([edges, edges[:, ::-1]])
+    out = values.astype(np.float64, copy=True)
+    counts = np.bincount(edges[:, 0], minlength=len(values)).astype(np.float64) + 1.0
+    shape = (-1,) + (1,) * (out.ndim - 1)
+    for _ in range(passes):
+        acc = out.copy()
+        np.add.at(acc, edges[:, 0], out[edges[:, 1]])
+        new = acc / counts.reshape(shape)
+        out = new if update is None else np.where(update.reshape(shape), new, out)
+    return out
+
+
+def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.ndarray | None:
+    """Median colour of the person's pixels in the top :data:`HAIR_BAND` of the head's projected box
+    (``head_px``: projected head vertices), or None when there are none."""
+    if len(head_px) == 0:
+        return None
+    h, w = mask.shape
+    x0, x1 = np.clip(np.percentile(head_px[:, 0], [10, 90]).astype(int), 0, w - 1)
+    y_lo, y_hi = np.clip(np.percentile(head_px[:, 1], [0, 100]).astype(int), 0, h - 1)
+    cols = mask[:, x0:x1 + 1] > 0.5
+    rows_with_person = np.nonzero(cols.any(axis=1))[0]
+    if rows_with_person.size == 0:
+        return None
+    top = int(rows_with_person.min())  # the top of the head in the photo (hair included)
+    bottom = top + max(2, int(HAIR_BAND * max(y_hi - min(top, y_lo), 1)))
+    band = mask[top:bottom, x0:x1 + 1] > 0.5
+    if band.sum() < 4:
+        return None
+    return np.median(image[top:bottom, x0:x1 + 1][band], axis=0)
+
+
+def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image: np.ndarray, mask: np.ndarray,
+                head_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex colours (V, 3) of a body seen in one view (contract step 4) and the visibility (V,) bool.
+
+    ``camera`` holds one camera; ``image`` (H, W, 3) and ``mask`` (H, W) are that view's photo and
+    person mask; ``head_weight`` (V,) in [0, 1] marks the head (None: no hair handling)."""
+    from humanvdm_core.render import render_views
+
+    v = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    depth = render_views(TexturedMesh(v.astype(np.float32), faces), camera, (0.0, 0.0, 0.0), samples=1).depth[0]
+    depth = np.where(depth > 0, depth, np.inf)
+    px, z = _project(v, camera)
+    visible = z <= _lookup(depth, px) + DEPTH_TOLERANCE
+
+    filled = fill_from_nearest(image, mask)
+    front = _bilinear(filled, px)
+
+    # the front point at the same world (x, y): z_front by two fixed-point steps on the rendered depth
+    c2w, K_inv = camera.c2w[0], np.linalg.inv(camera.K[0])
+    z_front = v[:, 2].copy()
+    mirror_px = px
+    for _ in range(2):
+        q = np.stack([v[:, 0], v[:, 1], z_front], axis=1)
+        q_px, _ = _project(q, camera)
+        d = _lookup(depth, q_px)
+        hit = np.isfinite(d)
+        rays = np.concatenate([q_px, np.ones((len(q_px), 1))], axis=1) @ K_inv.T
+        surface = (rays * np.where(hit, d, 0.0)[:, None]) @ c2w[:3, :3].T + c2w[:3, 3]
+        z_front = np.where(hit, np.maximum(surface[:, 2], v[:, 2]), z_front)
+        mirror_px = np.where(hit[:, None], q_px, mirror_px)
+    back = _bilinear(filled, mirror_px)
+
+    if head_weight is not None and np.any(head_weight > 0.5):
+        hair = hair_colour(image, mask, px[head_weight > 0.5])
+        if hair is not None:
+            hw = np.clip(head_weight, 0.0, 1.0)[:, None]
+            back = hw * hair[None] + (1.0 - hw) * back
+
+    seen = _smooth(visible.astype(np.float64), faces, BOUNDARY_SMOOTHING)[:, None]
+    colours = seen * front + (1.0 - seen) * back
+    colours = _smooth(colours, faces, BACK_SMOOTHING, update=~visible)
+    return np.clip(colours, 0.0, 1.0).astype(np.float32), visible
+
+
+# ----------------------------------------------------------------------------- the backend
+
+def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
+                     background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
+                     fill: float = DEFAULT_FILL, seed: int = 0,
+                     logger: logging.Logger | None = None) -> BodyProxy:
+    """Steps 1-4 of the contract: the input view, the orbit, the fitted and coloured body."""
+    import torch
+
+    from humanvdm_core.body import load_body_model
+    from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body
+
+    lg = logger or log
+    view = prepare_input_view(photo_path, size, fill, background)
+    cameras = orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(SUBJECT_HEIGHT, FOV_DEG, fill))
+    cameras.extra.update({"background": np.asarray(background, np.float64), "fill": np.float64(fill)})
+    front = int(np.argmin(np.abs((cameras.azimuth_deg + 180.0) % 360.0 - 180.0)))
+    front_cam = cameras.subset([front])
+
+    model = load_body_model("anny")
+    torch.manual_seed(seed)
+    obs = FrameObservation(0, view.keypoints, view.confidences, view.mask.copy(), list(view.warnings))
+    fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed), logger=lg)
+    vertices = fit.output.vertices[0].numpy().astype(np.float64)
+    faces = model.faces.numpy().astype(np.int64)
+
+    weights = model.skinning_weights.numpy()
+    head_ids = [model.joint_names.index(n) for n in HEAD_JOINTS if n in model.joint_names]
+    head_weight = weights[:, head_ids].sum(axis=1) if head_ids else None
+    colours, visible = colour_body(vertices, faces, front_cam, view.rgba[..., :3], view.mask, head_weight)
+    lg.info("body prior: fitted in %.1f s (reprojection %.1f px), %d of %d vertices seen in the photo",
+            fit.seconds, float(np.nanmean(fit.reprojection_px)), int(visible.sum()), len(visible))
+    mesh = TexturedMesh(vertices.astype(np.float32), faces, vertex_colors=colours)
+    return BodyProxy(input_view=view, mesh=mesh, cameras=cameras, front_index=front,
+                     background=tuple(float(c) for c in background),
+                     reprojection_px=float(np.nanmean(fit.reprojection_px)),
+                     warnings=list(dict.fromkeys(view.warnings + fit.warnings)))
+
+
+def synthesize_orbit(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
+                     background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
+                     fill: float = DEFAULT_FILL, seed: int = 0,
+                     logger: logging.Logger | None = None) -> tuple[np.ndarray, Cameras]:
+    """A photo -> (frames (N, size, size, 4) float32, cameras); see the module docstring."""
+    proxy = build_body_proxy(photo_path, num_frames, size, elevation_deg, background, iterations, fill, seed, logger)
+    return proxy.orbit_frames(), proxy.cameras
