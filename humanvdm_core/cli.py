@@ -37,6 +37,8 @@ from humanvdm_core.scheduler import (
 from humanvdm_core.store import Store
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+KEY_OUTPUTS = ("splat-optimize/gaussians/point_cloud.ply", "splat-optimize/gaussians/turntable.gif",
+               "evaluate/report/report.html", "fit-smpl/body/overlay.png")
 
 
 def default_pipeline() -> Path:
@@ -170,7 +172,11 @@ def cmd_run(args) -> int:
     done = {r.subject.name for r in summary.runs if r.state in (RAN, CACHED)}
     for s in subjects:
         if s.name in done:
-            print(f"outputs of {s.name}: {store.root / 'runs' / s.name}")
+            base = store.root / "runs" / s.name
+            print(f"outputs of {s.name}: {base}")
+            for rel in KEY_OUTPUTS:
+                if (base / rel).exists():
+                    print(f"  {rel}")
     return 0 if summary.ok else 1
 
 
