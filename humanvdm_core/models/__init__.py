@@ -10,6 +10,11 @@ match, listing the missing and unexpected ones (:class:`~humanvdm_core.models.ch
 - :mod:`.faces`      face detection (MediaPipe's bundled detector), 5-point alignment, feathered paste-back.
 - :mod:`.rife`       RIFE v4.6 IFNet (Practical-RIFE ``flownet.pkl``), arbitrary-time interpolation.
 - :mod:`.upscalers`  the ``realesrgan`` and ``codeformer`` backends of :mod:`humanvdm_core.upscale`.
+- :mod:`.sv3d`       SV3D_u / SV3D_p (``sv3d_*.safetensors``, sgm layout): loading, EDM Euler sampling with
+                     the triangle CFG, the ``diffuse`` backends; parts in :mod:`.sv3d_unet` (video UNet),
+                     :mod:`.sv3d_vae` (conditioning encoder, temporal decoder), :mod:`.openclip_vision`
+                     (OpenCLIP ViT-H/14 image tower).
+- :mod:`.sv3d_finetune` fine-tuning the SV3D UNet on rendered orbits (the ``finetune`` stage), resumable.
 
 Heavy imports (torch) happen when a backend runs, never when a stage's SPEC is imported.
 """
