@@ -143,6 +143,17 @@ def test_video_decoder_shapes_range_and_temporal_mixing(parts):
         dec.decode(z, num_frames=4)
 
 
+def test_image_decoder_of_sv3d_u_yaml_loads_and_decodes_frames_independently():
+    """sv3d_u.yaml names sgm's plain image Decoder: no time_stack / time_mix_conv tensors."""
+    sd = vae.tiny_video_decoder_state_dict(2, video=False)
+    assert not any("time_" in k or "mix_factor" in k for k in sd)
+    dec = vae.build_video_decoder(sd, "tiny image decoder")
+    z = torch.randn(3, 4, 4, 4, generator=torch.Generator().manual_seed(2))
+    x = dec.decode(z, num_frames=3)
+    assert x.shape == (3, 3, 32, 32)
+    assert torch.allclose(x[1:2], dec.decode(z[1:2], num_frames=1), atol=1e-5)  # no mixing across frames
+
+
 def test_decode_chunked(parts):
     dec = vae.build_video_decoder(parts["first_stage"])
     z = torch.randn(5, 4, 4, 4, generator=torch.Generator().manual_seed(1))

@@ -332,10 +332,12 @@ class CondFrameEncoder(nn.Module):
 
 
 class VideoFirstStage(nn.Module):
-    """SV3D's ``first_stage_model``: only ``decoder`` (a ``VideoDecoder``) has tensors."""
+    """SV3D's ``first_stage_model``: only ``decoder`` has tensors -- a ``VideoDecoder`` (sv3d_p.yaml), or
+    sgm's plain image ``Decoder`` (``video_kernel`` None; sv3d_u.yaml), told apart by the presence of
+    any ``time_stack`` / ``time_mix_conv`` tensor; the image decoder ignores ``num_frames``."""
 
     def __init__(self, widths: tuple[int, ...], num_res_blocks: int, z_channels: int,
-                 video_kernel: tuple[int, int, int] = (3, 1, 1), attn: tuple[bool, ...] | None = None):
+                 video_kernel: tuple[int, int, int] | None = (3, 1, 1), attn: tuple[bool, ...] | None = None):
         super().__init__()
         self.decoder = Decoder(widths, num_res_blocks, z_channels, 3, attn, video_kernel)
         self.z_channels = z_channels
@@ -410,6 +412,11 @@ def video_decoder_config(sd: dict, path: str = "state dict") -> dict:
     """``VideoFirstStage`` arguments from the shapes of a state dict relative to :data:`FIRST_STAGE_PREFIX`."""
     z = _shape(sd, "decoder.conv_in.weight", WHAT_DECODER, path)[1]
     widths, n_blocks, attn = _levels(sd, "decoder.up.", WHAT_DECODER, path)
+    if not any(".time_stack." in k or ".time_mix_conv." in k for k in sd):  # sv3d_u.yaml's image Decoder
+        if n_blocks < 1:
+            raise CheckpointError(f"{path}: unexpected {WHAT_DECODER} layout ({n_blocks} blocks)")
+        return {"widths": tuple(widths), "num_res_blocks": n_blocks - 1, "z_channels": z,
+                "video_kernel": None, "attn": attn}
     kernel = _shape(sd, "decoder.conv_out.time_mix_conv.weight", WHAT_DECODER, path)[2:]
     if len(kernel) != 3 or n_blocks < 1:
         raise CheckpointError(f"{path}: unexpected {WHAT_DECODER} layout (time kernel {kernel}, {n_blocks} blocks)")
@@ -481,10 +488,11 @@ def tiny_cond_encoder_state_dict(seed: int = 0, ch: int = TINY_CH,
 
 
 def tiny_video_decoder_state_dict(seed: int = 0, ch: int = TINY_CH,
-                                  ch_mult: tuple[int, ...] = TINY_CH_MULT) -> dict:
-    """A tiny random ``VideoDecoder`` state dict in the official layout, keys relative to
-    :data:`FIRST_STAGE_PREFIX` (``decoder.*``; 1 res block per level, z 4, time kernel (3, 1, 1))."""
+                                  ch_mult: tuple[int, ...] = TINY_CH_MULT, video: bool = True) -> dict:
+    """A tiny random ``VideoDecoder`` (``video`` False: image ``Decoder``) state dict in the official
+    layout, keys relative to :data:`FIRST_STAGE_PREFIX` (``decoder.*``; 1 res block per level, z 4,
+    time kernel (3, 1, 1))."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        model = VideoFirstStage(tuple(ch * m for m in ch_mult), 1, 4)
+        model = VideoFirstStage(tuple(ch * m for m in ch_mult), 1, 4, (3, 1, 1) if video else None)
     return _random_state_dict(model, seed)
