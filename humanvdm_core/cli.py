@@ -68,7 +68,7 @@ def _add_selection(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kind", choices=None, default=None, help="force the input kind (e.g. photo, scan)")
     p.add_argument("--force", action="append", default=[], metavar="STAGE", help="rerun STAGE even if cached")
     p.add_argument("--until", metavar="STAGE", help="run STAGE and what it needs, nothing after it")
-    p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE", help="override a param")
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE", help="override a param; STAGE.backend=NAME chooses a backend")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -167,6 +167,9 @@ def cmd_run(args) -> int:
     if missing:
         blocked = sorted({r.stage for r in summary.runs if r.state == BLOCKED})
         print(f"not implemented yet: {', '.join(missing)}" + (f" (so not run: {', '.join(blocked)})" if blocked else ""))
+    for r in summary.runs:
+        for w in r.warnings:
+            print(f"warning {r.label}: {w}")
     for r in summary.failed:
         print(f"FAILED {r.label}: {r.reason}\n  log: {r.log}")
     done = {r.subject.name for r in summary.runs if r.state in (RAN, CACHED)}

@@ -34,34 +34,40 @@ def discover(paths: list[str | Path], kind: str | None = None) -> list[Subject]:
     subjects: list[Subject] = []
     for raw in paths:
         p = Path(raw).expanduser()
-        if not p.exists():
-            raise InputError(f"input not found: {p}")
-        if p.is_file():
-            suffix = p.suffix.lower()
-            if kind is not None:
-                subjects.append(Subject(p.stem, kind, p.resolve()))
-            elif suffix in IMAGE_SUFFIXES:
-                subjects.append(Subject(p.stem, "photo", p.resolve()))
-            elif suffix in MESH_SUFFIXES:
-                subjects.append(Subject(p.stem, "scan", p.resolve()))
-            else:
-                raise InputError(f"{p}: not an image ({sorted(IMAGE_SUFFIXES)}) nor a mesh ({sorted(MESH_SUFFIXES)})")
-        elif _meshes_in(p):
-            subjects.append(Subject(p.name, kind or "scan", p.resolve()))
-        else:
-            images = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES
-                            and not _is_mask(f))
-            scans = sorted(d for d in p.iterdir() if d.is_dir() and _meshes_in(d))
-            if images and kind != "scan":
-                subjects.extend(Subject(f.stem, kind or "photo", f.resolve()) for f in images)
-            elif scans:
-                subjects.extend(Subject(d.name, kind or "scan", d.resolve()) for d in scans)
-            else:
-                raise InputError(f"{p}: no images, meshes or scan folders found")
+        try:
+            subjects.extend(_discover_one(p, kind))
+        except OSError as e:  # e.g. a folder that cannot be listed
+            raise InputError(f"cannot read {p}: {e.strerror or e}") from None
     if not subjects:
         raise InputError("no inputs given")
     _unique_names(subjects)
     return subjects
+
+
+def _discover_one(p: Path, kind: str | None) -> list[Subject]:
+    """The subjects one command-line path names."""
+    if not p.exists():
+        raise InputError(f"input not found: {p}")
+    if p.is_file():
+        suffix = p.suffix.lower()
+        if kind is not None:
+            return [Subject(p.stem, kind, p.resolve())]
+        if suffix in IMAGE_SUFFIXES:
+            return [Subject(p.stem, "photo", p.resolve())]
+        if suffix in MESH_SUFFIXES:
+            return [Subject(p.stem, "scan", p.resolve())]
+        raise InputError(f"{p}: not an image ({sorted(IMAGE_SUFFIXES)}) nor a mesh ({sorted(MESH_SUFFIXES)})")
+    if not p.is_dir():  # a device, a pipe, a socket
+        raise InputError(f"{p}: not a file or a folder")
+    if _meshes_in(p):
+        return [Subject(p.name, kind or "scan", p.resolve())]
+    images = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES and not _is_mask(f))
+    scans = sorted(d for d in p.iterdir() if d.is_dir() and _meshes_in(d))
+    if images and kind != "scan":
+        return [Subject(f.stem, kind or "photo", f.resolve()) for f in images]
+    if scans:
+        return [Subject(d.name, kind or "scan", d.resolve()) for d in scans]
+    raise InputError(f"{p}: no images, meshes or scan folders found")
 
 
 def _unique_names(subjects: list[Subject]) -> None:
@@ -74,7 +80,19 @@ def _unique_names(subjects: list[Subject]) -> None:
 
 
 def import_subject(store: Store, subject: Subject) -> str:
-    """Put the subject's files in the store (once) and set ``subject.input_id``."""
+    """Put the subject's files in the store (once) and set ``subject.input_id``.
+
+    A file that cannot be read (permissions, I/O error) raises :class:`InputError` naming it."""
+    try:
+        return _import(store, subject)
+    except OSError as e:
+        where = Path(e.filename or subject.source)
+        if where.is_relative_to(store.root):
+            raise InputError(f"cannot write to the store {store.root}: {e.strerror or e} ({where})") from None
+        raise InputError(f"cannot read {where}: {e.strerror or e}") from None
+
+
+def _import(store: Store, subject: Subject) -> str:
     src = subject.source
     if src.is_file() and src.suffix.lower() == ".obj":
         names = {src.name: str(src)}

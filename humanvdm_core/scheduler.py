@@ -19,16 +19,19 @@ stage's key, params, input and output ids, backend, wall time, peak memory and v
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import platform
+import re
+import shutil
 import subprocess
 import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -76,6 +79,7 @@ class StageRun:
     wall_s: float | None = None
     peak_rss_mb: float | None = None
     log: Path | None = None
+    warnings: list[str] = field(default_factory=list)  # the stage's own warnings (kept with its record)
 
     @property
     def label(self) -> str:
@@ -121,6 +125,13 @@ class Scheduler:
                 raise ConfigError(f"--set: unknown stage {stage!r}; stages: {list(pipeline.stages)}")
             if pipeline.stages[stage].spec is None:
                 raise ConfigError(f"--set: stage {stage} is not implemented yet")
+        self.overrides = {s: dict(o) for s, o in self.overrides.items()}
+        backends = {s: str(o.pop("backend")) for s, o in self.overrides.items() if "backend" in o}
+        if backends:  # `--set stage.backend=name` chooses the stage's backend (the caller's pipeline is kept)
+            stages = dict(pipeline.stages)
+            for stage, backend in backends.items():
+                stages[stage] = replace(stages[stage], backend=stages[stage].spec.check_backend(backend))
+            pipeline = self.pipeline = replace(pipeline, stages=stages)
         for stage in self.force | ({until} if until else set()):
             if stage not in pipeline.stages:
                 raise ConfigError(f"unknown stage {stage!r}; stages: {list(pipeline.stages)}")
@@ -344,6 +355,7 @@ class Scheduler:
         run.outputs = dict(record["outputs"])
         run.wall_s = record.get("wall_s")
         run.peak_rss_mb = record.get("peak_rss_mb")
+        run.warnings = list(record.get("warnings") or [])
         self._update_view(run, sd.backend, record)
 
     def _execute_stage(self, run: StageRun) -> dict | None:
@@ -378,12 +390,14 @@ class Scheduler:
         run.wall_s, run.peak_rss_mb = wall, rusage.ru_maxrss / 1024.0
         if proc.returncode != 0:
             run.state = FAILED
-            run.reason = _error_line(run.log) or f"exit code {proc.returncode}"
+            run.reason = _user_names(run, _error_line(run.log)) or f"exit code {proc.returncode}"
+            _discard(staging)
             return None
         out_ids = {}
         for name, path in outputs.items():
             if not path.is_dir() or not any(path.rglob("*")):
                 run.state, run.reason = FAILED, f"stage wrote nothing to its output {name}"
+                _discard(staging)
                 return None
             out_ids[name] = self.store.commit_dir(path)
         record = {
@@ -392,6 +406,7 @@ class Scheduler:
             "outputs": out_ids,
             "wall_s": round(wall, 3),
             "peak_rss_mb": round(run.peak_rss_mb, 1),
+            "warnings": _warning_lines(run.log),
             "versions": self.versions(),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
@@ -415,7 +430,7 @@ class Scheduler:
             tmp.symlink_to(target)
             os.replace(tmp, link)
         entry = {k: record.get(k) for k in ("key", "module", "code", "params", "backend", "weights", "inputs",
-                                            "outputs", "wall_s", "peak_rss_mb", "versions")}
+                                            "outputs", "wall_s", "peak_rss_mb", "warnings", "versions")}
         entry["status"] = run.state
         with self._lock:
             lock = self._lockfiles.get(run.subject.name)
@@ -505,6 +520,33 @@ def _error_line(log: Path) -> str | None:
         if ln.startswith("error:"):
             return ln[len("error:"):].strip()
     return lines[-1] if len(lines) > 1 else None
+
+
+def _warning_lines(log: Path | None) -> list[str]:
+    """The stage's ``warning: ...`` log lines (see :mod:`humanvdm_core.stage`), without their prefix."""
+    try:
+        lines = log.read_text(errors="replace").splitlines() if log else []
+    except OSError:
+        return []
+    marker = ": warning: "
+    return list(dict.fromkeys(ln.split(marker, 1)[1].strip() for ln in lines if marker in ln))
+
+
+def _user_names(run: StageRun, message: str | None) -> str | None:
+    """A stage reads a single-file input from the store as ``input.<ext>``: name the user's file instead."""
+    src = run.subject.source
+    if not message or not src.is_file() or not any(ref.stage is None for ref in run.chosen.values()):
+        return message
+    stored = f"input{src.suffix.lower()}"  # the name Store.import_path gives a single file
+    return re.sub(rf"(?<![\w./-]){re.escape(stored)}\b", lambda _: str(src), message)
+
+
+def _discard(staging: Path) -> None:
+    """Remove a failed stage's staging folder (partial outputs; its log stays in runs/<subject>/logs)."""
+    for p in [staging, *staging.rglob("*")]:
+        with contextlib.suppress(OSError):
+            p.chmod(0o755 if p.is_dir() else 0o644)
+    shutil.rmtree(staging, ignore_errors=True)
 
 
 class _NoBar:

@@ -135,8 +135,9 @@ class StageSpec:
         parser.add_argument("--backend", default=self.backends[0], choices=self.backends)
         parser.add_argument("-v", "--verbose", action="store_true")
         ns = parser.parse_args(argv)
-        logging.basicConfig(level=logging.DEBUG if ns.verbose else logging.INFO,
-                            format=f"%(asctime)s {self.name}: %(message)s", datefmt="%H:%M:%S")
+        handler = logging.StreamHandler()
+        handler.setFormatter(_StageFormatter(self.name))
+        logging.basicConfig(level=logging.DEBUG if ns.verbose else logging.INFO, handlers=[handler])
         log = logging.getLogger(f"humanvdm.{self.name}")
         try:
             params = self.resolve_params({k: getattr(ns, f"p_{k}") for k in self.params
@@ -178,6 +179,18 @@ class StageContext:
 
 def _flag(name: str) -> str:
     return name.replace("_", "-")
+
+
+class _StageFormatter(logging.Formatter):
+    """``HH:MM:SS <stage>: <message>``; warnings read ``<stage>: warning: <message>`` so the scheduler
+    can show them in its summary and keep them in the lockfile."""
+
+    def __init__(self, stage: str):
+        super().__init__(f"%(asctime)s {stage}: %(message)s", datefmt="%H:%M:%S")
+        self._warning = logging.Formatter(f"%(asctime)s {stage}: warning: %(message)s", datefmt="%H:%M:%S")
+
+    def format(self, record: logging.LogRecord) -> str:
+        return (self._warning if record.levelno >= logging.WARNING else super()).format(record)
 
 
 def _format(value: Any) -> str:

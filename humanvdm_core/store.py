@@ -36,8 +36,13 @@ from pathlib import Path
 
 from filelock import FileLock
 
+from humanvdm_core.errors import HumanVDMError
 from humanvdm_core.hashing import StatCache, hash_tree, list_files, tree_id
 from humanvdm_core.io import atomic_write_text
+
+
+class StoreInUseError(HumanVDMError, RuntimeError):
+    """The store is held by a running pipeline (``gc`` refuses: exit 2 with this message, no traceback)."""
 
 
 @dataclass
@@ -220,7 +225,7 @@ class Store:
             try:
                 fcntl.flock(f, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
             except BlockingIOError:
-                raise RuntimeError(f"the store {self.root} is in use by a running pipeline; try again later") from None
+                raise StoreInUseError(f"the store {self.root} is in use by a running pipeline; try again later") from None
             try:
                 yield
             finally:

@@ -254,3 +254,22 @@ def test_optional_input_absent_from_the_run(tmp_path):
     toy.pipeline_path.write_text(toy.pipeline_path.read_text().replace("$note?", "$note"))
     with pytest.raises(ConfigError, match="optional"):
         toy.scheduler()
+
+
+def test_set_backend_chooses_a_stage_backend():
+    from humanvdm_core.cli import REPO_ROOT
+    from humanvdm_core.pipeline import load_pipeline
+    from humanvdm_core.scheduler import Subject
+    from humanvdm_core.store import Store
+
+    pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
+    photo = Subject("p", "photo", REPO_ROOT)
+    default = Scheduler(pipe, Store.__new__(Store))
+    chosen = Scheduler(pipe, Store.__new__(Store), overrides={"diffuse": {"backend": "sv3d_p"}})
+    assert chosen.pipeline.stages["diffuse"].backend == "sv3d_p"
+    assert pipe.stages["diffuse"].backend == default.pipeline.stages["diffuse"].backend == "body-prior"
+    assert "sv3d_p_weights" in chosen.params["diffuse"]  # the backend is not left among the params
+    assert "backend" not in chosen.params["diffuse"]
+    with pytest.raises(ConfigError, match=r"stage diffuse: unknown backend 'sv3dd'; choose from \['body-prior'"):
+        Scheduler(pipe, Store.__new__(Store), overrides={"diffuse": {"backend": "sv3dd"}})
+    assert default.plan([photo]) and chosen.plan([photo])
