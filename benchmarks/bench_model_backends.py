@@ -13,6 +13,10 @@ official ones, so "real size" is what ``RealESRGAN_x4plus.pth`` / ``codeformer.p
   the real size) + paste-back; the per-frame estimate adds the Real-ESRGAN background above.
 - ``rife``: one in-between frame from a 576² RGBA pair (RIFE v4.6 IFNet, 5.3 M parameters), tiny
   and real size.
+- ``pervfi``: one in-between frame (t = 0.5) from a 576² RGBA pair: RAFT flows both ways (12
+  iterations, 5.3 M parameters) + the PerVFI v00 generator (8.7 M parameters, normalizing-flow
+  decoder, pure-PyTorch softsplat and deformable convolution), tiny and real size (the real one is
+  timed once, after a warm-up on a small crop).
 - the embedded backends on the same frames, for comparison.
 
 Run:  .venv/bin/python benchmarks/bench_model_backends.py [--threads 2] [--probe 96] [--full]
@@ -72,6 +76,7 @@ def save_models(folder: Path) -> tuple[dict[str, Path], dict[str, float]]:
     """Random-weight models saved in their official layouts; (paths, millions of parameters)."""
     import torch
 
+    from humanvdm_core.models import pervfi, raft
     from humanvdm_core.models.codeformer import CodeFormer
     from humanvdm_core.models.rife import IFNet
     from humanvdm_core.models.rrdbnet import RRDBNet
@@ -93,6 +98,13 @@ def save_models(folder: Path) -> tuple[dict[str, Path], dict[str, float]]:
         sd = net.state_dict()
         torch.save({"params_ema": sd} if not name.startswith("rife") else {f"module.{k}": v for k, v in sd.items()},
                    paths[name])
+    for kind, cfgs in (("tiny", (pervfi.TINY, raft.TINY)), ("real", (pervfi.OFFICIAL, raft.OFFICIAL))):
+        gen, flow = pervfi.save_random(folder / f"pervfi_{kind}.pth", folder / f"raft_{kind}.pth", *cfgs)
+        paths[f"pervfi_{kind}"], paths[f"pervfi_{kind}_flow"] = gen, flow
+        sizes[f"pervfi_{kind}"] = round(sum(v.numel() for v in torch.load(gen, weights_only=True).values()
+                                            if v.dtype.is_floating_point) / 1e6, 3)
+        sizes[f"pervfi_{kind}_raft"] = round(sum(v.numel() for v in torch.load(flow, weights_only=True).values()
+                                                 if v.dtype.is_floating_point) / 1e6, 3)
     return paths, sizes
 
 
@@ -109,7 +121,7 @@ def main() -> None:
 
     from humanvdm_core.interpolate import BACKENDS as INTERP
     from humanvdm_core.interpolate import InterpolateOptions
-    from humanvdm_core.models import codeformer, faces, rife, rrdbnet
+    from humanvdm_core.models import codeformer, faces, pervfi, rife, rrdbnet
     from humanvdm_core.upscale import BACKENDS as UP
     from humanvdm_core.upscale import UpscaleOptions
 
@@ -165,10 +177,17 @@ def main() -> None:
             rife.interpolate_pair(net, frame0, frame1, [0.5])
             out[f"interpolate rife {kind}, one in-between frame"] = round(
                 timed(lambda net=net: rife.interpolate_pair(net, frame0, frame1, [0.5]), 3), 3)
+        for kind in ("tiny", "real"):
+            model = pervfi.load(paths[f"pervfi_{kind}"], paths[f"pervfi_{kind}_flow"])
+            pervfi.interpolate_pair(model, frame0[:64, :64], frame1[:64, :64])  # warm up
+            out[f"interpolate pervfi {kind} (+ RAFT), one in-between frame"] = round(
+                timed(lambda model=model: pervfi.interpolate_pair(model, frame0, frame1), 1 if kind == "real" else 2), 2)
 
     per_orbit = {
         "upscale 21 frames, realesrgan real (s)": round(21 * real_s),
         "interpolate 21 -> 81, rife real (s)": round(60 * out["interpolate rife real, one in-between frame"]),
+        "interpolate 21 -> 81, pervfi real (s)": round(
+            60 * out["interpolate pervfi real (+ RAFT), one in-between frame"]),
     }
     res["per_orbit_estimate_cpu"] = per_orbit
     cmd = "python benchmarks/bench_model_backends.py " + " ".join(sys.argv[1:])

@@ -19,9 +19,13 @@ Contract (input and output are frame sets, see :mod:`humanvdm_core.frames`):
   times as the paper does with PerVFI (each pass sees the previous pass's outputs).
 
 Backends are functions chosen by name (:data:`BACKENDS`) with the signature
-``(frame0, frame1, times, opts) -> list of frames``; a backend that only synthesises t = 0.5
-(PerVFI) is run with the ``recursive`` schedule; ``rife`` (RIFE v4.6, local weights,
-:mod:`humanvdm_core.models.rife`) takes any t.  The ``embedded`` backend has two methods:
+``(frame0, frame1, times, opts) -> list of frames``; ``rife`` (RIFE v4.6, local weights,
+:mod:`humanvdm_core.models.rife`) takes any t.  ``pervfi`` (PerVFI v00 + RAFT, local weights,
+:mod:`humanvdm_core.models.pervfi`) is a ×2 model -- its released weights are trained on triplets
+(t = 0.5) -- so it always runs with the ``recursive`` schedule, as the paper applies it (21 -> 41 ->
+81): a ``direct`` schedule is overridden for it (:data:`RECURSIVE_ONLY`, :func:`effective_schedule`),
+logged, and the schedule that ran is what the frames' ``interpolate_schedule`` attribute records.
+The ``embedded`` backend has two methods:
 
 - ``flow`` (default):
   1. bidirectional optical flow F_01, F_10 with OpenCV DIS on the luma, at ``flow_scale`` of the
@@ -69,6 +73,8 @@ class InterpolateOptions:
     preset: str = "fine"
     time_flow: str = "splat"
     rife_weights: str = ""  # RIFE v4.6 flownet.pkl (backend "rife", humanvdm_core.models.rife)
+    pervfi_weights: str = ""  # PerVFI generator v00.pth (backend "pervfi", humanvdm_core.models.pervfi)
+    pervfi_flow_weights: str = ""  # its RAFT flow estimator, raft-sintel.pth
 
     @property
     def factor(self) -> int:
@@ -265,7 +271,28 @@ def interpolate_rife(frame0: np.ndarray, frame1: np.ndarray, times: Sequence[flo
     return rife.interpolate_pair(rife.load(opts.rife_weights), frame0, frame1, list(times))
 
 
-BACKENDS: dict[str, InterpolateBackend] = {"embedded": interpolate_embedded, "rife": interpolate_rife}
+def interpolate_pervfi(frame0: np.ndarray, frame1: np.ndarray, times: Sequence[float],
+                       opts: InterpolateOptions) -> list[np.ndarray]:
+    """PerVFI (v00 generator + RAFT) from local weights (:mod:`humanvdm_core.models.pervfi`).
+
+    The network takes t, but its weights are trained at t = 0.5; :func:`interpolate_interval` only
+    asks it for 0.5 (``recursive`` schedule).
+    """
+    from humanvdm_core.models import pervfi
+
+    model = pervfi.load(opts.pervfi_weights, opts.pervfi_flow_weights)
+    return [pervfi.interpolate_pair(model, frame0, frame1, time=t) for t in times]
+
+
+BACKENDS: dict[str, InterpolateBackend] = {"embedded": interpolate_embedded, "rife": interpolate_rife,
+                                           "pervfi": interpolate_pervfi}
+# Backends that synthesise only the midpoint: always run ×2 per pass (schedule "recursive").
+RECURSIVE_ONLY = frozenset({"pervfi"})
+
+
+def effective_schedule(opts: InterpolateOptions, backend: str) -> str:
+    """The schedule that runs: ``recursive`` for the ×2-only backends, else ``opts.schedule``."""
+    return "recursive" if backend in RECURSIVE_ONLY else opts.schedule
 
 
 def interpolate_interval(frame0: np.ndarray, frame1: np.ndarray, opts: InterpolateOptions,
@@ -274,7 +301,7 @@ def interpolate_interval(frame0: np.ndarray, frame1: np.ndarray, opts: Interpola
     fn = BACKENDS[backend]
     if opts.factor == 1:
         return []
-    if opts.schedule == "direct":
+    if effective_schedule(opts, backend) == "direct":
         return fn(frame0, frame1, [k / opts.factor for k in range(1, opts.factor)], opts)
     seq = [frame0, frame1]
     for _ in range(opts.passes):
@@ -323,7 +350,10 @@ def interpolate_frame_set(src: str | Path, dst: str | Path, opts: InterpolateOpt
         raise InputError(f"unknown interpolate backend {backend!r}; available: {sorted(BACKENDS)}")
     paths, cams, h, w = check_frame_set(src)
     factor = opts.factor
-    base = {**(attrs or {}), "interpolate_method": opts.method, "interpolate_schedule": opts.schedule}
+    schedule = effective_schedule(opts, backend)
+    if log and schedule != opts.schedule:
+        log.info("backend %s synthesises only t = 0.5: schedule %s instead of %s", backend, schedule, opts.schedule)
+    base = {**(attrs or {}), "interpolate_method": opts.method, "interpolate_schedule": schedule}
 
     def put(index: int, frame: np.ndarray, key: bool, t: float) -> None:
         write_exr(dst / FRAMES_DIR / frame_name(index), frame,
@@ -342,7 +372,7 @@ def interpolate_frame_set(src: str | Path, dst: str | Path, opts: InterpolateOpt
     n_out = (len(paths) - 1) * factor + 1
     if log:
         log.info("interpolated %d -> %d frames (%dx%d, %s/%s, %s schedule)", len(paths), n_out, w, h, backend,
-                 opts.method, opts.schedule)
+                 opts.method, schedule)
         if dropped:
             log.info("layers not carried over (cannot be interpolated faithfully): %s", dropped)
     return {"frames_in": len(paths), "frames_out": n_out, "factor": factor, "dropped_layers": dropped}

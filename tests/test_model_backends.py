@@ -338,10 +338,12 @@ def test_stage_params_match_the_library_and_mark_weights():
     lib = upscale.UpscaleOptions()
     assert UP.params["fidelity"].default == lib.fidelity == 0.7 and UP.params["tile"].default == lib.tile
     assert set(UP.backends) == set(upscale.BACKENDS) == {"embedded", "realesrgan", "codeformer"}
-    assert set(INTERP.backends) == set(interpolate.BACKENDS) == {"embedded", "rife"}
+    assert set(INTERP.backends) == set(interpolate.BACKENDS) == {"embedded", "rife", "pervfi"}
     for spec, name, backends in ((UP, "realesrgan_weights", ("realesrgan", "codeformer")),
                                  (UP, "codeformer_weights", ("codeformer",)),
-                                 (INTERP, "rife_weights", ("rife",))):
+                                 (INTERP, "rife_weights", ("rife",)),
+                                 (INTERP, "pervfi_weights", ("pervfi",)),
+                                 (INTERP, "pervfi_flow_weights", ("pervfi",))):
         p = spec.params[name]
         assert p.weights and p.default.startswith("~/.cache/humanvdm/weights/")
         assert all(p.applies_to(b) for b in backends) and not p.applies_to("embedded")
