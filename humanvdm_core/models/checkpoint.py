@@ -7,6 +7,7 @@
   :class:`~humanvdm_core.errors.MissingWeightsError` naming it and where to get it.
 - :func:`load_strict` loads a state dict into a module and raises :class:`CheckpointError`
   listing missing/unexpected keys and shape mismatches when the layout is not the expected one.
+- :func:`build_strict` does both for an architecture read from the checkpoint's shapes.
 - :func:`cached_model` builds a model once per (builder, file path, size, mtime) in a process.
 """
 
@@ -68,6 +69,15 @@ def load_strict(module, state_dict: dict, what: str, path: str | Path) -> None:
         raise CheckpointError(f"{path} is not a {what} checkpoint in the expected key layout; "
                               + "; ".join(p for p in parts if p))
     module.load_state_dict(state_dict, strict=True)
+
+
+def build_strict(path: str | Path, what: str, where_to_get: str, make: Callable[[dict, Path], Any]) -> Any:
+    """The module ``make(state_dict, path)`` builds for checkpoint ``path`` (architecture read from the
+    tensors), its weights loaded with :func:`load_strict`, on :func:`infer_device`."""
+    sd = read_state_dict(path, what, where_to_get)
+    net = make(sd, Path(path))
+    load_strict(net, sd, what, path)
+    return net.to(infer_device())
 
 
 def cached_model(builder: Callable[[Path], Any], path: str | Path) -> Any:

@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from humanvdm_core.models.blocks import AttnBlock, Downsample, Upsample, group_norm
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
     cached_model,
@@ -49,56 +50,17 @@ WHERE = "https://github.com/sczhou/CodeFormer/releases (v0.1.0: codeformer.pth)"
 N_HEAD = 8
 
 
-def _norm(ch: int) -> nn.GroupNorm:
-    return nn.GroupNorm(32, ch, eps=1e-6, affine=True)
-
-
 class ResBlock(nn.Module):
     def __init__(self, cin: int, cout: int):
         super().__init__()
-        self.norm1, self.conv1 = _norm(cin), nn.Conv2d(cin, cout, 3, 1, 1)
-        self.norm2, self.conv2 = _norm(cout), nn.Conv2d(cout, cout, 3, 1, 1)
+        self.norm1, self.conv1 = group_norm(cin), nn.Conv2d(cin, cout, 3, 1, 1)
+        self.norm2, self.conv2 = group_norm(cout), nn.Conv2d(cout, cout, 3, 1, 1)
         self.conv_out = nn.Conv2d(cin, cout, 1) if cin != cout else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.conv1(F.silu(self.norm1(x)))
         h = self.conv2(F.silu(self.norm2(h)))
         return h + (self.conv_out(x) if self.conv_out is not None else x)
-
-
-class AttnBlock(nn.Module):
-    """Single-head spatial self-attention with 1x1 q/k/v/proj convs, residual."""
-
-    def __init__(self, ch: int):
-        super().__init__()
-        self.norm = _norm(ch)
-        self.q, self.k, self.v = nn.Conv2d(ch, ch, 1), nn.Conv2d(ch, ch, 1), nn.Conv2d(ch, ch, 1)
-        self.proj_out = nn.Conv2d(ch, ch, 1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        b, c, h, w = x.shape
-        n = self.norm(x)
-        q, k, v = (m(n).reshape(b, c, h * w).transpose(1, 2) for m in (self.q, self.k, self.v))
-        out = F.scaled_dot_product_attention(q[:, None], k[:, None], v[:, None])[:, 0]
-        return x + self.proj_out(out.transpose(1, 2).reshape(b, c, h, w))
-
-
-class Downsample(nn.Module):
-    def __init__(self, ch: int):
-        super().__init__()
-        self.conv = nn.Conv2d(ch, ch, 3, 2, 0)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(F.pad(x, (0, 1, 0, 1)))
-
-
-class Upsample(nn.Module):
-    def __init__(self, ch: int):
-        super().__init__()
-        self.conv = nn.Conv2d(ch, ch, 3, 1, 1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(F.interpolate(x, scale_factor=2.0, mode="nearest"))
 
 
 class Coder(nn.Module):
@@ -124,7 +86,7 @@ def encoder_blocks(nf: int, ch_mult: tuple[int, ...], emb_dim: int, res_blocks: 
         if i != last:
             taps[i] = len(blocks) - 1  # the last block at this resolution, before downsampling
             blocks.append(Downsample(ch))
-    blocks += [ResBlock(ch, ch), AttnBlock(ch), ResBlock(ch, ch), _norm(ch), nn.Conv2d(ch, emb_dim, 3, 1, 1)]
+    blocks += [ResBlock(ch, ch), AttnBlock(ch), ResBlock(ch, ch), group_norm(ch), nn.Conv2d(ch, emb_dim, 3, 1, 1)]
     return blocks, taps
 
 
@@ -144,7 +106,7 @@ def generator_blocks(nf: int, ch_mult: tuple[int, ...], emb_dim: int, res_blocks
                 blocks.append(AttnBlock(ch))
         if i != 0:
             blocks.append(Upsample(ch))
-    blocks += [_norm(ch), nn.Conv2d(ch, 3, 3, 1, 1)]
+    blocks += [group_norm(ch), nn.Conv2d(ch, 3, 3, 1, 1)]
     return blocks, fuse
 
 

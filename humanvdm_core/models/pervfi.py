@@ -62,10 +62,8 @@ from torch import nn
 from humanvdm_core.models import raft
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
+    build_strict,
     cached_model,
-    infer_device,
-    load_strict,
-    read_state_dict,
 )
 
 WHAT = "PerVFI generator weights (v00.pth)"
@@ -707,10 +705,7 @@ def config_from_state_dict(sd: dict, path: str | Path = "checkpoint") -> dict:
 
 
 def build_generator(path: Path) -> Generator:
-    sd = read_state_dict(path, WHAT, WHERE)
-    net = Generator(config_from_state_dict(sd, path))
-    load_strict(net, sd, WHAT, path)
-    return net.to(infer_device())
+    return build_strict(path, WHAT, WHERE, lambda sd, p: Generator(config_from_state_dict(sd, p)))
 
 
 class PerVFI(nn.Module):

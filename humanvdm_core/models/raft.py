@@ -30,10 +30,8 @@ from torch import nn
 
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
+    build_strict,
     cached_model,
-    infer_device,
-    load_strict,
-    read_state_dict,
 )
 
 WHAT = "RAFT optical-flow weights (raft-sintel.pth, PerVFI's flow estimator)"
@@ -243,10 +241,7 @@ TINY = {"fnet": (8, 8, 8, 8), "cnet": (8, 8, 8, 8), "feature": 8, "hidden": 8, "
 
 
 def build(path: Path) -> RAFT:
-    sd = read_state_dict(path, WHAT, WHERE)
-    net = RAFT(config_from_state_dict(sd, path))
-    load_strict(net, sd, WHAT, path)
-    return net.to(infer_device())
+    return build_strict(path, WHAT, WHERE, lambda sd, p: RAFT(config_from_state_dict(sd, p)))
 
 
 def load(path: str | Path) -> RAFT:

@@ -31,10 +31,8 @@ from torch import nn
 
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
+    build_strict,
     cached_model,
-    infer_device,
-    load_strict,
-    read_state_dict,
 )
 
 WHAT = "RIFE v4.6 IFNet weights (flownet.pkl)"
@@ -135,10 +133,7 @@ def config_from_state_dict(sd: dict, path: str | Path = "checkpoint") -> list[tu
 
 
 def build(path: Path) -> IFNet:
-    sd = read_state_dict(path, WHAT, WHERE)
-    net = IFNet(config_from_state_dict(sd, path))
-    load_strict(net, sd, WHAT, path)
-    return net.to(infer_device())
+    return build_strict(path, WHAT, WHERE, lambda sd, p: IFNet(config_from_state_dict(sd, p)))
 
 
 def load(path: str | Path) -> IFNet:

@@ -63,6 +63,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from humanvdm_core.models.blocks import AttnBlock, Downsample, Upsample, group_norm
 from humanvdm_core.models.checkpoint import CheckpointError, load_strict
 
 FIRST_STAGE_PREFIX = "first_stage_model."
@@ -71,10 +72,6 @@ COND_ENCODER_IGNORED_PREFIXES = ("decoder.", "post_quant_conv.")
 WHAT_ENCODER = "SV3D conditioning-frame encoder (AutoencoderKLModeOnly)"
 WHAT_DECODER = "SV3D first-stage VideoDecoder"
 TINY_CH, TINY_CH_MULT = 32, (1, 1, 2, 2)
-
-
-def _norm(ch: int) -> nn.GroupNorm:
-    return nn.GroupNorm(32, ch, eps=1e-6, affine=True)
 
 
 class GroupNorm32(nn.GroupNorm):
@@ -92,8 +89,8 @@ class ResnetBlock(nn.Module):
 
     def __init__(self, cin: int, cout: int):
         super().__init__()
-        self.norm1, self.conv1 = _norm(cin), nn.Conv2d(cin, cout, 3, 1, 1)
-        self.norm2, self.conv2 = _norm(cout), nn.Conv2d(cout, cout, 3, 1, 1)
+        self.norm1, self.conv1 = group_norm(cin), nn.Conv2d(cin, cout, 3, 1, 1)
+        self.norm2, self.conv2 = group_norm(cout), nn.Conv2d(cout, cout, 3, 1, 1)
         self.nin_shortcut = nn.Conv2d(cin, cout, 1) if cin != cout else None
 
     def spatial(self, x: torch.Tensor) -> torch.Tensor:
@@ -150,41 +147,6 @@ class VideoResBlock(ResnetBlock):
         return _to_images(alpha * self.time_stack(v) + (1.0 - alpha) * v)
 
 
-class AttnBlock(nn.Module):
-    """sgm ``AttnBlock``: single-head spatial self-attention with 1x1 q/k/v/proj_out convs, residual."""
-
-    def __init__(self, ch: int):
-        super().__init__()
-        self.norm = _norm(ch)
-        self.q, self.k, self.v = nn.Conv2d(ch, ch, 1), nn.Conv2d(ch, ch, 1), nn.Conv2d(ch, ch, 1)
-        self.proj_out = nn.Conv2d(ch, ch, 1)
-
-    def forward(self, x: torch.Tensor, num_frames: int | None = None) -> torch.Tensor:
-        b, c, h, w = x.shape
-        n = self.norm(x)
-        q, k, v = (m(n).reshape(b, 1, c, h * w).transpose(2, 3) for m in (self.q, self.k, self.v))
-        out = F.scaled_dot_product_attention(q, k, v)[:, 0].transpose(1, 2).reshape(b, c, h, w)
-        return x + self.proj_out(out)
-
-
-class Downsample(nn.Module):
-    def __init__(self, ch: int):
-        super().__init__()
-        self.conv = nn.Conv2d(ch, ch, 3, 2, 0)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(F.pad(x, (0, 1, 0, 1)))
-
-
-class Upsample(nn.Module):
-    def __init__(self, ch: int):
-        super().__init__()
-        self.conv = nn.Conv2d(ch, ch, 3, 1, 1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(F.interpolate(x, scale_factor=2.0, mode="nearest"))
-
-
 class AE3DConv(nn.Conv2d):
     """sgm ``AE3DConv``: a Conv2d followed by ``time_mix_conv``, a Conv3d over (T, H, W)."""
 
@@ -238,7 +200,7 @@ class Encoder(nn.Module):
                 level.downsample = Downsample(width)
             self.down.append(level)
         self.mid = _Mid(ResnetBlock, cin)
-        self.norm_out = _norm(cin)
+        self.norm_out = group_norm(cin)
         self.conv_out = nn.Conv2d(cin, out_channels, 3, 1, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -286,7 +248,7 @@ class Decoder(nn.Module):
                 level.upsample = Upsample(cin)
             levels[lv] = level
         self.up = nn.ModuleList(levels)
-        self.norm_out = _norm(cin)
+        self.norm_out = group_norm(cin)
         self.conv_out = (nn.Conv2d(cin, out_channels, 3, 1, 1) if video_kernel is None
                          else AE3DConv(cin, out_channels, video_kernel))
 
