@@ -38,7 +38,7 @@ from humanvdm_core.store import Store
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 KEY_OUTPUTS = ("splat-optimize/gaussians/point_cloud.ply", "splat-optimize/gaussians/turntable.gif",
-               "evaluate/report/report.html", "fit-smpl/body/overlay.png")
+               "evaluate/report/report.html", "evaluate/report/orbit.gif", "fit-smpl/body/overlay.png")
 
 
 def default_pipeline() -> Path:

@@ -43,6 +43,7 @@ class EvaluateOptions:
     geometry_samples: int = 100000
     min_opacity: float = 0.05
     cell_size: int = 256
+    media_size: int = 256  # pixel size of orbit.gif (0: no orbit.gif)
 
     def check(self) -> None:
         """ConfigError naming the first param out of range."""
@@ -251,6 +252,44 @@ def _fmt(x) -> str:
     return html.escape(str(x))
 
 
+ORBIT_GIF_FRAMES = 41  # at most this many frames of the orbit video go into orbit.gif
+
+
+def write_media(out: Path, frame_paths: list[Path], background, gaussians: str | Path, body: str | Path | None,
+                size: int) -> dict[str, str]:
+    """The pictures a person looks at, next to the numbers (names of the files written in ``out``):
+    ``orbit.gif`` (the orbit video the Gaussians were fitted to, at most :data:`ORBIT_GIF_FRAMES`
+    frames at ``size``² over ``background``), ``turntable.gif`` (copied from the Gaussians artifact
+    when it has one) and ``fit_overlay.png`` (the body fit's ``overlay.png`` when ``body`` is given)."""
+    import shutil
+
+    import numpy as np
+    from PIL import Image
+
+    from humanvdm_core.frames import read_frame
+    from humanvdm_core.io import to_uint8
+
+    media: dict[str, str] = {}
+    if size > 0 and frame_paths:
+        step = max(1, -(-len(frame_paths) // ORBIT_GIF_FRAMES))
+        bg = np.asarray(background, np.float32).reshape(3)
+        images = []
+        for path in frame_paths[::step]:
+            rgba = read_frame(path)
+            rgb = rgba[..., :3] if rgba.shape[-1] < 4 else rgba[..., :3] * rgba[..., 3:4] + bg * (1 - rgba[..., 3:4])
+            images.append(Image.fromarray(to_uint8(_resize(np.ascontiguousarray(rgb, np.float32), size))))
+        images[0].save(out / "orbit.gif", save_all=True, append_images=images[1:], duration=80, loop=0)
+        media["orbit"] = "orbit.gif"
+    gdir = Path(gaussians)
+    if gdir.is_dir() and (gdir / "turntable.gif").is_file():
+        shutil.copyfile(gdir / "turntable.gif", out / "turntable.gif")
+        media["turntable"] = "turntable.gif"
+    if body is not None and (Path(body) / "overlay.png").is_file():
+        shutil.copyfile(Path(body) / "overlay.png", out / "fit_overlay.png")
+        media["fit_overlay"] = "fit_overlay.png"
+    return media
+
+
 def write_html(path, report: dict) -> None:
     import html
 
@@ -262,6 +301,13 @@ def write_html(path, report: dict) -> None:
              "td:first-child{text-align:left}</style></head><body>",
              "<h1>Human-VDM evaluation</h1>",
              f"<p>{report['gaussians']['count']} Gaussians; images compared at {report['resolution']}&sup2; px.</p>"]
+    captions = {"turntable": "the 3D Gaussian human, turning", "orbit": "the orbit video it was fitted to",
+                "fit_overlay": "the fitted body over the orbit frames"}
+    media = report.get("media") or {}
+    if media:
+        parts.append("<div style='display:flex;gap:1em;flex-wrap:wrap'>" + "".join(
+            f"<figure><img src='{html.escape(media[k])}' alt='{k}' style='max-height:360px'>"
+            f"<figcaption>{captions[k]}</figcaption></figure>" for k in captions if k in media) + "</div>")
     for group, views in report["views"].items():
         parts.append(f"<h2>{html.escape(group)} views</h2><table><tr><th>view</th>"
                      + "".join(f"<th>{k}</th>" for k in IMAGE_METRICS) + "</tr>")
@@ -287,9 +333,10 @@ def write_html(path, report: dict) -> None:
 
 
 def evaluate_gaussians(gaussians: str | Path, frames_dir: str | Path, scan: str | Path | None, out: Path,
-                       opts: EvaluateOptions, log: logging.Logger = LOG) -> dict:
+                       opts: EvaluateOptions, log: logging.Logger = LOG, body: str | Path | None = None) -> dict:
     """Score the Gaussians (an artifact folder or ``gaussians.npz``) against the frame set ``frames_dir``
-    (and ``scan`` when given); write metrics.json, grid.png and report.html into ``out``; return the report."""
+    (and ``scan`` when given); write metrics.json, grid.png, the media of :func:`write_media` and
+    report.html into ``out``; return the report."""
     import json
 
     import numpy as np
@@ -401,6 +448,7 @@ def evaluate_gaussians(gaussians: str | Path, frames_dir: str | Path, scan: str 
         "definitions": DEFINITIONS,
     }
     out = Path(out)
+    report["media"] = write_media(out, paths, background, gaussians, body, opts.media_size)
     atomic_write_text(out / "metrics.json", json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n")
     write_png(out / "grid.png", make_grid(rows, min(opts.cell_size, res)))
     write_html(out / "report.html", json_safe(report))

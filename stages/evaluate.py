@@ -7,7 +7,8 @@ Inputs:
   sRGB [0, 1]), or the ``.npz`` itself;
 - ``frames``: the frame set the Gaussians were fitted to (its cameras define the orbit);
 - ``scan`` (optional; oracle runs on a textured scan): the scan the frames were rendered from.
-  The frame set's ``cameras.extra['world_from_scan']`` places it in the world.
+  The frame set's ``cameras.extra['world_from_scan']`` places it in the world;
+- ``body`` (optional): the ``fit-smpl`` output, for its overlay in the report.
 
 Views (all rendered at ``resolution``², the Gaussians by :func:`humanvdm_core.splat.rasterize.
 rasterize_gaussians` over the frames' background colour):
@@ -28,7 +29,9 @@ Output ``report``:
   geometry without a scan reads ``"unavailable: ..."``. Infinite PSNR is written as ``"inf"``.
 - ``grid.png``: one row per view; columns ground truth | ours | |error| heatmap (mean absolute RGB
   error, 0 -> 0.5 mapped through the inferno colour map);
-- ``report.html``: the numbers and the grid.
+- ``orbit.gif`` (the frame set as a video, ``media_size``²), ``turntable.gif`` (copied from the
+  Gaussians artifact when it has one), ``fit_overlay.png`` (the ``body`` input's overlay, when given);
+- ``report.html``: those pictures, the numbers and the grid.
 
 Errors a user can fix (no gaussians.npz, a wrong schema, a frame set without cameras, a scan run
 whose frames lack ``world_from_scan``, a perceptual weight file with the wrong keys) exit 3.
@@ -45,8 +48,9 @@ SPEC = StageSpec(
     summary="Render the Gaussians at the protocol (and held-out scan) views; write metrics.json, grid.png, report.html.",
     inputs={"gaussians": "splat-optimize output (gaussians.npz)",
             "frames": "the frame set the Gaussians were fitted to (frames + cameras)",
-            "scan": "the textured scan of an oracle run (ground truth for held-out views and geometry)"},
-    outputs={"report": "metrics.json, grid.png, report.html"},
+            "scan": "the textured scan of an oracle run (ground truth for held-out views and geometry)",
+            "body": "the fit-smpl output (its overlay.png goes into the report)"},
+    outputs={"report": "metrics.json, grid.png, orbit.gif, turntable.gif, fit_overlay.png, report.html"},
     params={
         "resolution": Param(512, "render and compare at this many pixels square"),
         "heldout_elevations": Param("0,25", "elevations (degrees) of the held-out scan views, comma-separated"),
@@ -60,8 +64,9 @@ SPEC = StageSpec(
         "geometry_samples": Param(100000, "uniform scan-surface samples for the geometry error"),
         "min_opacity": Param(0.05, "Gaussians below this opacity are left out of the geometry error"),
         "cell_size": Param(256, "pixel size of one grid.png cell"),
+        "media_size": Param(256, "pixel size of orbit.gif, the orbit video in the report (0: none)"),
     },
-    optional=("scan",),
+    optional=("scan", "body"),
 )
 
 
@@ -74,9 +79,10 @@ def run(ctx: StageContext) -> None:
         heldout_elevations=float_list("heldout_elevations", p["heldout_elevations"]),
         heldout_azimuths=float_list("heldout_azimuths", p["heldout_azimuths"]),
         lpips_weights=p["lpips_weights"], alexnet_weights=p["alexnet_weights"], clip_weights=p["clip_weights"],
-        geometry_samples=p["geometry_samples"], min_opacity=p["min_opacity"], cell_size=p["cell_size"])
+        geometry_samples=p["geometry_samples"], min_opacity=p["min_opacity"], cell_size=p["cell_size"],
+        media_size=p["media_size"])
     evaluate_gaussians(ctx.inputs["gaussians"], ctx.inputs["frames"], ctx.inputs.get("scan"),
-                       ctx.outputs["report"], opts, ctx.log)
+                       ctx.outputs["report"], opts, ctx.log, body=ctx.inputs.get("body"))
 
 
 if __name__ == "__main__":

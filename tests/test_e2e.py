@@ -97,5 +97,10 @@ def test_photo_in_gaussians_out(tmp_path):
     metrics = json.loads((view / "evaluate" / "report" / "metrics.json").read_text())
     # a 41-frame orbit (one interpolation pass) holds the front and back views of the paper's four
     assert metrics["mean"]["protocol"]["views"] == 2 and metrics["mean"]["protocol"]["iou"] > 0.5
+    report = view / "evaluate" / "report"
+    assert metrics["media"] == {"orbit": "orbit.gif", "turntable": "turntable.gif", "fit_overlay": "fit_overlay.png"}
+    assert all((report / name).stat().st_size > 1000 for name in metrics["media"].values())
+    for rel in ("splat-optimize/gaussians/point_cloud.ply", "evaluate/report/report.html", "evaluate/report/orbit.gif"):
+        assert f"  {rel}" in res.stdout  # the summary points at what a person opens
     again = humanvdm(store, "run", str(photo), *args)
     assert "0 stage run(s) ran, 6 cached" in again.stdout

@@ -94,10 +94,18 @@ def run_stage(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_evaluate_scan_run(subject):
+    from PIL import Image
+
+    from humanvdm_core.frames import frame_paths
+    from humanvdm_core.io import write_png
+
     root = subject["root"]
     out = root / "report_scan"
+    body = root / "body_stub"
+    write_png(body / "overlay.png", np.full((8, 8, 3), 0.5, np.float32))
     proc = run_stage("--gaussians", str(root / "gaussians"), "--frames", str(root / "frames"),
-                     "--scan", str(root / "scan"), "--out-report", str(out), "--resolution", str(RES),
+                     "--scan", str(root / "scan"), "--body", str(body), "--out-report", str(out),
+                     "--resolution", str(RES), "--media-size", "48",
                      "--heldout-elevations", "0,10", "--heldout-azimuths", "45,90",
                      "--geometry-samples", "20000", "--cell-size", "64",
                      "--alexnet-weights", str(root / "alexnet.pth"), "--lpips-weights", str(root / "alex.pth"),
@@ -126,6 +134,12 @@ def test_evaluate_scan_run(subject):
     assert img.shape == (7 * 64, 3 * 64, 3)
     html = (out / "report.html").read_text()
     assert "grid.png" in html and "az45_el0" in html
+    # the pictures for people: the orbit video, the fit overlay (no turntable in this Gaussians artifact)
+    with Image.open(out / "orbit.gif") as gif:
+        assert gif.size == (48, 48) and gif.n_frames == len(frame_paths(root / "frames"))
+    assert (out / "fit_overlay.png").read_bytes() == (body / "overlay.png").read_bytes()
+    assert report["media"] == {"orbit": "orbit.gif", "fit_overlay": "fit_overlay.png"}
+    assert "src='orbit.gif'" in html and "src='fit_overlay.png'" in html and "turntable" not in html
 
 
 def test_evaluate_photo_run_without_weights(subject):
