@@ -44,6 +44,8 @@ SPEC = StageSpec(
         "tile_size": Param(0, "rasterizer tile size; 0: from the preset"),
         "scale_mode": Param("isotropic", "Gaussian scales: one (isotropic) or three per Gaussian",
                             choices=("isotropic", "anisotropic")),
+        "min_scale": Param(0.5, "smallest Gaussian scale, as a fraction of its texel's spacing (keeps the "
+                                "surface closed when viewed at a higher resolution than trained)"),
         "feature_dim": Param(16, "channels of the optimisable feature tensor"),
         "hidden": Param(64, "width of the decoder MLP"),
         "refine_pose": Param(True, "jointly refine the body pose and translation"),
@@ -114,7 +116,7 @@ def run(ctx: StageContext) -> None:
                  len(anchor.rows), s["uv_resolution"], len(views.images), s["train_resolution"], s["iterations"],
                  device.type)
     human = H.GaussianHuman(anchor, feature_dim=p["feature_dim"], hidden=p["hidden"], scale_mode=p["scale_mode"],
-                            refine_pose=p["refine_pose"], seed=p["seed"]).to(device)
+                            refine_pose=p["refine_pose"], seed=p["seed"], min_scale=p["min_scale"]).to(device)
     config = H.FitConfig(
         iterations=s["iterations"], lr=p["lr"], pose_lr=p["pose_lr"], batch_views=p["batch_views"],
         l1_weight=p["l1_weight"], ssim_weight=p["ssim_weight"], lpips_weight=p["lpips_weight"],

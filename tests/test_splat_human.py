@@ -68,7 +68,7 @@ def test_tiny_preset_learns_the_subject(subject):
     human, result, views = _train(subject, H.PRESETS["tiny"]["iterations"])
     assert 2000 <= human.num_gaussians <= 5000
     first, last = np.mean(result.losses[:2]), np.mean(result.losses[-2:])
-    assert last < 0.6 * first, result.losses
+    assert last < 0.65 * first, result.losses
     held = views.subset(list(HELD_OUT))
     with torch.no_grad():
         pred, _ = H.render(human(), held.w2c, held.K, SIZE, SIZE, held.background, 4)

@@ -8,7 +8,11 @@ Model (:class:`GaussianHuman`):
 - an optimisable feature tensor (C x R x R), read at the valid texels and concatenated with the
   canonical position map (3 channels), goes through a small decoder (equivalent to 1x1 convolutions:
   a per-texel MLP) that predicts an offset (3, metres), a colour (3, sRGB in [0, 1], sigmoid) and a
-  scale (1 isotropic or 3 anisotropic; ``base * exp(out)`` where ``base`` is the texel's 3D spacing);
+  scale (1 isotropic or 3 anisotropic; ``base * exp(out)`` where ``base`` is the texel's 3D spacing,
+  ``out`` clamped to [log(min_scale), 3]: with ``min_scale`` 0.5 neighbouring Gaussians keep
+  overlapping, so the surface stays closed when viewed at a higher resolution than it was trained at
+  -- measured on a synthetic subject, cpu preset: +2.3 dB PSNR against its training video at 512²,
+  -1.4 dB at 256², +0.5 dB against the truth at 512²);
 - opacity is fixed to 1 and the canonical rotation is the identity (as GaussianAvatar);
 - canonical Gaussians ``x_c = anchor + offset`` are posed by linear blend skinning with the body's
   bone transforms at the refined pose (``pose + delta_pose``, ``transl + delta_transl``, both
@@ -205,10 +209,15 @@ class GaussianHuman(torch.nn.Module):
     """UV-anchored Gaussians with a feature tensor + MLP decoder and a refinable body pose."""
 
     def __init__(self, anchor: BodyAnchor, feature_dim: int = 16, hidden: int = 64, layers: int = 3,
-                 scale_mode: str = "isotropic", refine_pose: bool = True, seed: int = 0):
+                 scale_mode: str = "isotropic", refine_pose: bool = True, seed: int = 0, min_scale: float = 0.5):
         super().__init__()
         if scale_mode not in ("isotropic", "anisotropic"):
             raise ConfigError(f"scale_mode must be 'isotropic' or 'anisotropic', got {scale_mode!r}")
+        if not 0.0 <= min_scale <= 1.0:
+            raise ConfigError(f"min_scale must be in [0, 1] (a fraction of the texel spacing), got {min_scale}")
+        # the decoder's log-scale is kept in [log(min_scale), 3]: a Gaussian cannot shrink below
+        # min_scale x its texel's spacing, so neighbours keep overlapping at any viewing resolution
+        self.min_log_scale = math.log(min_scale) if min_scale > 0 else -6.0
         if refine_pose and anchor.model is None:
             raise ConfigError("pose refinement needs the body model (load_body_anchor(load_model=True))")
         self.scale_mode = scale_mode
@@ -275,7 +284,7 @@ class GaussianHuman(torch.nn.Module):
         out = self.decoder(torch.cat([self.texel_features(), self.position_input], dim=1))
         offsets = out[:, 0:3]
         colors = torch.sigmoid(out[:, 3:6])
-        log_scale = out[:, 6:].clamp(-6.0, 3.0)
+        log_scale = out[:, 6:].clamp(self.min_log_scale, 3.0)
         canonical = self.anchors + offsets
         A = blend_transforms(self.weights, self.bone_transforms()[None])[0] @ self.canonical_inverse  # (M, 4, 4)
         means = (A[:, :3, :3] @ canonical[:, :, None])[:, :, 0] + A[:, :3, 3]
