@@ -53,7 +53,7 @@ def humanvdm(store: Path, *args: str, pipeline: Path | None = None, background: 
     if background:
         return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 start_new_session=True)
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=900)
 
 
 def _ryota() -> np.ndarray:
