@@ -21,7 +21,7 @@ Any other key (or a missing part) is a :class:`~humanvdm_core.models.checkpoint.
 listing the keys.  ``sv3d_u`` and ``sv3d_p`` are told apart by the UNet's ``label_emb.0.0.weight``
 input width (``adm_in_channels``): 256 (cond_aug) or 1280 (cond_aug 256 + polar 512 + azimuth 512).
 A file whose first-stage decoder has no temporal layers (sgm's ``sv3d_u.yaml`` names a plain image
-``Decoder``) is refused by :mod:`.sv3d_vae` with the missing ``time_mix_conv`` keys listed.
+``Decoder``) loads as that image decoder (:mod:`.sv3d_vae`), decoding every frame on its own.
 
 Conditioning (sgm ``GeneralConditioner`` with the SV3D embedders, routed by output rank):
 
@@ -66,7 +66,7 @@ import torch
 from torch import nn
 
 from humanvdm_core.errors import ConfigError
-from humanvdm_core.models import sv3d_unet
+from humanvdm_core.models import openclip_vision, sv3d_unet, sv3d_vae
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
     cached_model,
@@ -162,9 +162,9 @@ def build(path: Path) -> SV3D:
         unet = sv3d_unet.VideoUNet(cfg)
     unet = unet.to_empty(device="cpu")
     load_strict(unet, parts["unet"], f"{kind} video UNet ({UNET_PREFIX}*)", path)
-    clip = _build_clip(parts["clip"], path)
-    encoder = _build_encoder(parts["encoder"], path)
-    decoder = _build_decoder(parts["decoder"], path)
+    clip = openclip_vision.build_image_embedder(parts["clip"], str(path))
+    encoder = sv3d_vae.build_cond_encoder(parts["encoder"], str(path))
+    decoder = sv3d_vae.build_video_decoder(parts["decoder"], str(path))
     return SV3D(kind, unet, clip, encoder, decoder).to(infer_device())
 
 
@@ -173,26 +173,6 @@ def load(path: str | Path) -> SV3D:
 
     Missing file -> MissingWeightsError naming it and where to get it; wrong layout -> CheckpointError."""
     return cached_model(build, path)
-
-
-# Integration with the part modules (their builders load_strict the part themselves).
-
-def _build_clip(sd: dict, path: str | Path) -> nn.Module:
-    from humanvdm_core.models import openclip_vision
-
-    return openclip_vision.build_image_embedder(sd, str(path))
-
-
-def _build_encoder(sd: dict, path: str | Path) -> nn.Module:
-    from humanvdm_core.models import sv3d_vae
-
-    return sv3d_vae.build_cond_encoder(sd, str(path))
-
-
-def _build_decoder(sd: dict, path: str | Path) -> nn.Module:
-    from humanvdm_core.models import sv3d_vae
-
-    return sv3d_vae.build_video_decoder(sd, str(path))
 
 
 def _clip_embed(model: SV3D, image: torch.Tensor) -> torch.Tensor:
@@ -207,8 +187,6 @@ def _vae_encode(model: SV3D, image: torch.Tensor) -> torch.Tensor:
 
 def _vae_decode(model: SV3D, z: torch.Tensor, chunk: int) -> torch.Tensor:
     """Scaled latents (T, 4, h, w) -> frames (T, 3, H, W) in [-1, 1]."""
-    from humanvdm_core.models import sv3d_vae
-
     return sv3d_vae.decode_chunked(model.decoder, z / SCALE_FACTOR, chunk)
 
 
@@ -434,8 +412,6 @@ def tiny_state_dict(kind: str = "sv3d_p", seed: int = 0, context_dim: int = TINY
     """A whole tiny SV3D checkpoint in the official layout (random weights under every prefix, the
     CLIP text leftovers included): tiny UNet (:func:`.sv3d_unet.tiny_config`), tiny CLIP tower with a
     ``context_dim``-wide embedding, tiny VAE encoder/decoder (downsampling 8, as the real one)."""
-    from humanvdm_core.models import openclip_vision, sv3d_vae
-
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}")
     adm = 256 if kind == "sv3d_u" else 1280
