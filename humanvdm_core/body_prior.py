@@ -3,8 +3,9 @@ learned video model.
 
 This is a deterministic, geometric STAND-IN for the learned multi-view prior (SV3D, fine-tuned on
 humans; paper section 3.1). It keeps the pipeline runnable end to end on a CPU and gives the later
-stages a frame set in exactly the contract the learned backend will produce. Its unseen views are a
-coloured body model, not a plausible reconstruction of clothing, hair or anything loose.
+stages a frame set in exactly the contract the learned backend will produce. Its unseen views are
+rendered from a clothed proxy of the person (the photo's silhouette given depth and thickness), not
+learned: plausible in shape, plain in colour.
 
 Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 
@@ -19,31 +20,31 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 2. Cameras: ``orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(...))`` (the
    SV3D_p orbit; the last frame, azimuth 0, is the input view); ``extra["background"]`` and
    ``extra["fill"]`` are set.
-3. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
-   azimuth-0 camera and one observation).
-4. Colour (:func:`colour_body`), per vertex of the posed body:
-
-   * visible in the input view (its camera depth within :data:`DEPTH_TOLERANCE` of the body's own
-     rendered depth there): the photo's colour at its projection (bilinear);
-   * hidden (the back): the colour of the *front point* at the same world (x, y), i.e. what the
-     photo shows at the projection of (x, y, z_front) - a mirror of the front through the body's
-     front/back; z_front is found by two fixed-point steps on the rendered depth;
-   * hidden head vertices (skinning weight on ``head``/``eye.*``) blend towards the median hair
-     colour sampled at the top of the head in the photo, so the back of the head has no face;
-   * the visible/hidden switch is smoothed over the mesh (:data:`BOUNDARY_SMOOTHING` neighbour
-     averages), and hidden colours are averaged a little more.
-
-   The photo is sampled through a copy whose background is filled with the nearest person pixel, so
-   a body vertex that falls just outside the person mask still gets the person's colour.
-5. Frames: the coloured body rendered with vertex colours at every orbit camera over
-   ``background`` (RGBA, A = coverage); the azimuth-0 frame is then REPLACED by the preprocessed
-   input view itself, so the input view is exact.
+3. Facing (:func:`humanvdm_core.perception.facing.estimate_facing`: a face found, the left/right
+   order of shoulders and hips, MediaPipe's 3D nose vs ears): a photo taken from behind is built
+   facing away from the camera and says so in a warning; a doubtful case is assumed to face the
+   camera, with a warning.
+4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
+   azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
+   directions, the mask one-sided so clothing never stretches the body).
+5. Geometry ``clothed`` (default): the clothed proxy (:func:`humanvdm_core.clothed_proxy.build_clothed_proxy`)
+   -- a closed surface whose input view is the person's whole mask, the body's depth carried out to
+   the silhouette and inflated where the body does not reach (loose clothing, hair, hats, held
+   objects), textured with the photo on the seen side and, on the unseen side, each body part's own
+   visible colour, print-free, hair on the back of the head. Geometry ``body`` (the ablation): the
+   naked body coloured per vertex (:func:`colour_body`: seen vertices from the photo, hidden ones
+   mirrored from the front, hair on the back of the head).
+6. Frames: the proxy rendered at every orbit camera over ``background`` (RGBA, A = coverage); the
+   azimuth-0 frame is then REPLACED by the preprocessed input view itself, so the input view is exact.
+7. Warnings (``BodyProxy.warnings``, each naming the photo): what the stand-in had to guess -- legs or
+   hands hidden, a seated pose (the seat is not in the mask), much of the silhouette outside the body,
+   the facing -- plus the detector's own (e.g. a second person).
 
 ``frames`` is (N, size, size, 4) float32 (RGB sRGB values over ``background``), ``cameras`` a
 :class:`~humanvdm_core.cameras.Cameras`. Deterministic: same photo and arguments, same output (on one
-machine). Known limits: loose clothing, long hair, skirts and held objects are cut to the body's
-silhouette in every view but the input one; the back is a mirror of the front (a front print shows on
-the back); the body's limb depth is a single-view guess.
+machine). Known limits: the proxy is 2.5D (one front and one back surface per input-view pixel), so
+what the photo hides between a limb and the torso is filled; the unseen side is plain (no folds, no
+print, no face); the limbs' depth is a single-view estimate.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ import cv2
 import numpy as np
 
 from humanvdm_core.cameras import Cameras, orbit_cameras
+from humanvdm_core.clothed_proxy import ClothedProxy
 from humanvdm_core.scans import TexturedMesh, framing_radius
 
 log = logging.getLogger("humanvdm.body_prior")
@@ -81,6 +83,7 @@ class InputView:
     confidences: np.ndarray
     scale: float
     warnings: list[str] = field(default_factory=list)
+    world_keypoints: np.ndarray | None = None  # (17, 3) MediaPipe's 3D joints, metres, camera axes
 
     @property
     def mask(self) -> np.ndarray:
@@ -98,6 +101,9 @@ class BodyProxy:
     background: tuple[float, float, float]
     reprojection_px: float  # mean keypoint reprojection error of the single-view fit
     warnings: list[str] = field(default_factory=list)
+    clothed: ClothedProxy | None = None  # the clothed proxy the orbit is rendered from (geometry "clothed")
+    facing_away: bool = False  # the photo shows the person's back
+    coco17: np.ndarray | None = None  # (17, 3) the fitted body's COCO joints in the orbit's world
 
     def render(self, cameras: Cameras | None = None) -> np.ndarray:
         """(N, H, W, 4) float32 renders of the coloured body (default: the orbit), no replacement."""
@@ -158,7 +164,7 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
     keypoints = det.keypoints.astype(np.float64) * np.array([sx, sy]) + shift[:, 2]
     return InputView(rgba=rgba, keypoints=keypoints.astype(np.float32),
                      confidences=det.confidences.astype(np.float32), scale=float(scale),
-                     warnings=list(det.warnings))
+                     warnings=list(det.warnings), world_keypoints=det.world_keypoints)
 
 
 # ----------------------------------------------------------------------------- colouring helpers
@@ -289,41 +295,99 @@ def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image:
 
 # ----------------------------------------------------------------------------- the backend
 
+GEOMETRIES = ("clothed", "body")  # what the orbit is rendered from: the clothed proxy, or the naked body (ablation)
+LOOSE_FRACTION = 0.8  # the body covering less of the silhouette than this: clothing/hair/objects are guessed
+SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
+
+
+def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
+    """What the photo cannot tell the stand-in, from the detections and the fitted body's COCO joints
+    (17, 3; world, Y up): hidden legs or hands, a seated pose."""
+    out = []
+    conf = view.confidences
+    hidden_legs = [n for n, i in (("knees", (13, 14)), ("ankles", (15, 16))) if min(conf[i[0]], conf[i[1]]) < 0.5]
+    if hidden_legs:
+        out.append(f"{name}: the {' and '.join(hidden_legs)} are hidden (a long dress or coat, or out of view): "
+                   "the legs' pose is guessed")
+    if min(conf[9], conf[10]) < 0.5:
+        out.append(f"{name}: a hand is hidden (behind the body, in a pocket or out of view): its pose is guessed")
+    thighs = coco17[[13, 14]] - coco17[[11, 12]]
+    angle = np.degrees(np.arccos(np.clip(-thighs[:, 1] / np.maximum(np.linalg.norm(thighs, axis=1), 1e-9), -1, 1)))
+    if np.all(angle > SEATED_THIGH_DEG):
+        out.append(f"{name}: the person is seated or crouching (thighs {angle.min():.0f}-{angle.max():.0f} deg from "
+                   "vertical): the seat is not in the photo's mask, so the person floats; what is under them is guessed")
+    return out
+
+
 def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
                      background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
-                     fill: float = DEFAULT_FILL, seed: int = 0,
+                     fill: float = DEFAULT_FILL, seed: int = 0, geometry: str = "clothed",
                      logger: logging.Logger | None = None) -> BodyProxy:
-    """Steps 1-4 of the contract: the input view, the orbit, the fitted and coloured body."""
+    """Steps 1-4 of the contract: the input view, the orbit, the fitted body and the coloured proxy."""
     import torch
 
     from humanvdm_core.body import load_body_model
     from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body
+    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.perception.facing import estimate_facing
 
+    if geometry not in GEOMETRIES:
+        raise ConfigError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")
     lg = logger or log
+    name = resolve_photo(photo_path).name
     view = prepare_input_view(photo_path, size, fill, background)
     cameras = orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(SUBJECT_HEIGHT, FOV_DEG, fill))
     cameras.extra.update({"background": np.asarray(background, np.float64), "fill": np.float64(fill)})
     front = int(np.argmin(np.abs((cameras.azimuth_deg + 180.0) % 360.0 - 180.0)))
     front_cam = cameras.subset([front])
+    warnings = list(view.warnings)
+
+    facing = estimate_facing(view.rgba[..., :3], view.keypoints, view.confidences, view.world_keypoints)
+    if facing.away:
+        warnings.append(f"{name} shows the person from behind: built facing away from the camera; their front "
+                        "(face included) is not in the photo and is filled with plain colours")
+    elif facing.ambiguous:
+        warnings.append(f"{name}: no face found and the body's facing is unclear: assumed facing the camera")
 
     model = load_body_model("anny")
     torch.manual_seed(seed)
-    obs = FrameObservation(0, view.keypoints, view.confidences, view.mask.copy(), list(view.warnings))
-    fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed), logger=lg)
+    obs = FrameObservation(0, view.keypoints, view.confidences, view.mask.copy(), list(view.warnings),
+                           world_keypoints=view.world_keypoints)
+    fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),
+                   logger=lg)
     vertices = fit.output.vertices[0].numpy().astype(np.float64)
     faces = model.faces.numpy().astype(np.int64)
+    warnings += _pose_warnings(name, view, fit.output.coco17[0].numpy())
 
     weights = model.skinning_weights.numpy()
     head_ids = [model.joint_names.index(n) for n in HEAD_JOINTS if n in model.joint_names]
     head_weight = weights[:, head_ids].sum(axis=1) if head_ids else None
-    colours, visible = colour_body(vertices, faces, front_cam, view.rgba[..., :3], view.mask, head_weight)
-    lg.info("body prior: fitted in %.1f s (reprojection %.1f px), %d of %d vertices seen in the photo",
-            fit.seconds, float(np.nanmean(fit.reprojection_px)), int(visible.sum()), len(visible))
-    mesh = TexturedMesh(vertices.astype(np.float32), faces, vertex_colors=colours)
+    lg.info("body prior: fitted in %.1f s (reprojection %.1f px)", fit.seconds, float(np.nanmean(fit.reprojection_px)))
+    clothed = None
+    if geometry == "clothed":
+        from humanvdm_core.clothed_proxy import build_clothed_proxy
+
+        hair = None
+        if head_weight is not None and np.any(head_weight > 0.5) and not facing.away:
+            px, _ = _project(vertices[head_weight > 0.5], front_cam)
+            hair = hair_colour(view.rgba[..., :3], view.mask, px)
+        clothed = build_clothed_proxy(vertices, faces, weights, list(model.joint_names), front_cam,
+                                      view.rgba[..., :3], view.mask, head_colour=hair)
+        lg.info("clothed proxy: %d vertices, %d faces; the body covers %.0f%% of the silhouette",
+                len(clothed.mesh.vertices), len(clothed.mesh.faces), 100 * clothed.body_fraction)
+        if clothed.body_fraction < LOOSE_FRACTION:
+            warnings.append(f"{name}: {100 * (1 - clothed.body_fraction):.0f}% of the person's silhouette lies outside "
+                            "the fitted body (loose clothing, long hair, a hat or a held object): its depth and "
+                            "thickness are guessed")
+        mesh = clothed.mesh
+    else:
+        colours, _ = colour_body(vertices, faces, front_cam, view.rgba[..., :3], view.mask, head_weight)
+        mesh = TexturedMesh(vertices.astype(np.float32), faces, vertex_colors=colours)
     return BodyProxy(input_view=view, mesh=mesh, cameras=cameras, front_index=front,
                      background=tuple(float(c) for c in background),
                      reprojection_px=float(np.nanmean(fit.reprojection_px)),
-                     warnings=list(dict.fromkeys(view.warnings + fit.warnings)))
+                     warnings=list(dict.fromkeys(warnings + fit.warnings)), clothed=clothed,
+                     facing_away=facing.away, coco17=fit.output.coco17[0].numpy().astype(np.float64))
 
 
 def synthesize_orbit(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
@@ -331,5 +395,6 @@ def synthesize_orbit(photo_path: str | Path, num_frames: int = 21, size: int = 5
                      fill: float = DEFAULT_FILL, seed: int = 0,
                      logger: logging.Logger | None = None) -> tuple[np.ndarray, Cameras]:
     """A photo -> (frames (N, size, size, 4) float32, cameras); see the module docstring."""
-    proxy = build_body_proxy(photo_path, num_frames, size, elevation_deg, background, iterations, fill, seed, logger)
+    proxy = build_body_proxy(photo_path, num_frames, size, elevation_deg, background, iterations, fill, seed,
+                             logger=logger)
     return proxy.orbit_frames(), proxy.cameras

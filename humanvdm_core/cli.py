@@ -33,6 +33,7 @@ from humanvdm_core.scheduler import (
     Scheduler,
     read_lockfile,
     referenced_ids,
+    user_names,
 )
 from humanvdm_core.store import Store
 
@@ -169,7 +170,7 @@ def cmd_run(args) -> int:
         print(f"not implemented yet: {', '.join(missing)}" + (f" (so not run: {', '.join(blocked)})" if blocked else ""))
     for r in summary.runs:
         for w in r.warnings:
-            print(f"warning {r.label}: {w}")
+            print(f"warning {r.label}: {user_names(r, w)}")
     for r in summary.failed:
         print(f"FAILED {r.label}: {r.reason}\n  log: {r.log}")
     done = {r.subject.name for r in summary.runs if r.state in (RAN, CACHED)}

@@ -390,7 +390,7 @@ class Scheduler:
         run.wall_s, run.peak_rss_mb = wall, rusage.ru_maxrss / 1024.0
         if proc.returncode != 0:
             run.state = FAILED
-            run.reason = _user_names(run, _error_line(run.log)) or f"exit code {proc.returncode}"
+            run.reason = user_names(run, _error_line(run.log)) or f"exit code {proc.returncode}"
             _discard(staging)
             return None
         out_ids = {}
@@ -532,7 +532,7 @@ def _warning_lines(log: Path | None) -> list[str]:
     return list(dict.fromkeys(ln.split(marker, 1)[1].strip() for ln in lines if marker in ln))
 
 
-def _user_names(run: StageRun, message: str | None) -> str | None:
+def user_names(run: StageRun, message: str | None) -> str | None:
     """A stage reads a single-file input from the store as ``input.<ext>``: name the user's file instead."""
     src = run.subject.source
     if not message or not src.is_file() or not any(ref.stage is None for ref in run.chosen.values()):
@@ -569,4 +569,4 @@ def _progress(total: int, enabled: bool | None):
                 file=sys.stderr, dynamic_ncols=True)
 
 
-__all__ = ["Scheduler", "Subject", "StageRun", "Summary", "HumanVDMError", "referenced_ids"]
+__all__ = ["Scheduler", "Subject", "StageRun", "Summary", "HumanVDMError", "referenced_ids", "user_names"]

@@ -5,8 +5,16 @@ Contract:
 - :class:`SubjectSpec` describes one subject: Anny phenotype (``gender, age, muscle, weight,
   height, proportions``, each in [0, 1]; see :mod:`humanvdm_core.body.anny_model`), a pose name from
   :data:`POSES`, skin tone, hair, clothing (shirt colours/pattern/sleeves/printed text, lower
-  garment kind/colours/pattern, shoes) and a ``seed``. Everything :func:`make_subject` writes is a
-  deterministic function of the spec: the same spec gives byte-identical files on one machine.
+  garment kind/colours/pattern, shoes) and a ``seed``; all of that is painted on the body. Loose
+  garments that are not the body are separate meshes (see "Garment meshes" below): ``dress``
+  (:data:`DRESSES`: ``"none"``, ``"skirt"`` waist to knee, ``"long"`` waist to ankle, a gown) with
+  ``dress_flare`` (the hem's half-width in metres, 0 = automatic: 1.5x (skirt) / 2x (long) the
+  hip half-width), ``dress_color``/``dress_color2``/``dress_pattern`` (:data:`DRESS_PATTERNS`),
+  and ``long_hair`` (bool). They default to off; :meth:`SubjectSpec.to_dict` (and so truth
+  ``spec_json``) leaves them out while at their defaults, so specs without garments give the same
+  files as before garments existed. :data:`GARMENT_EXAMPLES` names ready-made specs wearing them.
+  Everything :func:`make_subject` writes is a deterministic function of the spec: the same spec
+  gives byte-identical files on one machine.
 - :func:`pose_params` builds the pose from joint rotations on Anny's rig (``AnnyBody``, 104 bones):
   the upper/lower arm and leg bones (``upperarm01``, ``lowerarm01``, ``upperleg01``,
   ``lowerleg01``, ``.L``/``.R``; ``shoulder01`` too for arms-raised) are turned so that each
@@ -16,16 +24,25 @@ Contract:
 
   - ``subject.obj`` + ``subject.mtl`` + ``albedo.png``: the posed Anny mesh (full ``"anny"``
     topology, 13718 vertices incl. eyeballs and tongue, in Anny's vertex order) with Anny's own UV
-    layout (``vt``, seams kept) and an unlit sRGB albedo of :data:`TEXTURE_SIZE` squared texels.
+    layout (``vt``, seams kept) and an unlit sRGB albedo of :data:`TEXTURE_SIZE` squared texels
+    (OBJ object ``subject``, material ``albedo``).
+  - with garments, after the body in the same OBJ: the objects ``dress`` and/or ``hair`` (in that
+    order; their ``v``/``vt`` lines follow the body's, so the body's indices stay Anny's), material
+    ``garments`` (a second ``newmtl`` in ``subject.mtl``) with its own :data:`GARMENT_TEXTURE`
+    (``garments.png``, as large as ``albedo.png``). :func:`humanvdm_core.scans.load_scan` reads
+    both materials into one mesh (packing the two textures into one atlas); ``trimesh.load`` gives
+    a Scene of two geometries.
   - ``truth.npz`` (:func:`humanvdm_core.io.write_npz`, schema :data:`TRUTH_SCHEMA` version 1), see
     :func:`make_subject` for the arrays. ``BodyParams.from_numpy(truth)`` fed to ``AnnyBody()``
     reproduces the OBJ's vertices (to float32 round-off).
 
 - World frame: the project's (metres, Y up, facing +Z, the person's left at +X). The subject stands
-  on the ground: its lowest vertex is at y = 0; the root joint (pelvis) is at x = z = 0. The
-  ``render-training-orbits`` stage normalises scans (bounding-box centre to the origin, Y extent to
-  1.7, :func:`humanvdm_core.scans.normalization_transform`); ``truth.npz`` records the same 4x4
-  ``normalized_from_world`` so truth joints can be mapped into the normalised scan frame.
+  on the ground: its lowest vertex (a body vertex: garments end above the ground) is at y = 0; the
+  root joint (pelvis) is at x = z = 0. The ``render-training-orbits`` stage normalises scans
+  (bounding-box centre to the origin, Y extent to 1.7,
+  :func:`humanvdm_core.scans.normalization_transform`); ``truth.npz`` records the same 4x4
+  ``normalized_from_world`` (of all the OBJ's vertices, garments included, as the stage sees them)
+  so truth joints can be mapped into the normalised scan frame.
 - Texture: coloured per body part in Anny's UV layout. Body parts come from Anny's shipped
   UV segmentation map (``anny/data/segmentation/body_parts_segmentation.png``: head, hands, feet,
   eyeballs, mouth cavity, tongue; the rest is "body") split further by Anny's skinning weights
@@ -34,14 +51,43 @@ Contract:
   follow the body into any pose. The face (brows, lined eyes with irises, lips) is painted on the
   front of the head only; the back of the head is hair. The shirt carries a printed badge with
   ``shirt_text`` on the front and a contrasting yoke on the back.
-- :func:`random_specs` draws varied, reproducible specs for benchmarks.
+- Garment meshes (:func:`build_garments`), built around the posed body in the world frame; the body
+  under them is unchanged (its truth parameters hold; its painted clothes stay as the spec says).
+  Each is a closed, watertight, consistently wound shell with a thickness (its outside and an
+  inside joined by rims), so it renders from any side (the renderer does not cull) and has an
+  inside for volume tests.
+
+  - The dress: a flared surface of revolution about a vertical axis, rings of 96 vertices from the
+    painted waist (``spine04`` joint + 1 cm) down to the hem (skirt: just below the knee joints,
+    12% of the way to the ankles; long: half the ankle joints' height). Each ring is an ellipse
+    growing from the waist's cross-section (+1.2 cm) to the hem's ellipse (half-width
+    ``dress_flare``, half-depth 0.85 of it; the body and the folds may push the hem further out,
+    truth ``dress_hem_half_width`` is measured on the mesh) along ``s ** 1.2`` (s = 0 at the
+    waist, 1 at the hem); wherever the torso, legs or feet (points sampled on their triangles, not only the
+    vertices) come within 1.2 cm of it, it is pushed out (beyond the body's support in each
+    direction), it is never narrower than the ring above (cloth hangs), and soft folds (outward
+    only, growing towards the hem) ripple it. The arms are not avoided: hanging hands may rest
+    on or sink into the cloth. The ring centre moves linearly from the waist's centre to the centre
+    of the legs at the hem, so the dress follows a walking stride (stretched over the leading
+    leg). Only the upright poses :data:`GARMENT_POSES` take a dress; ``seated`` raises
+    :class:`ConfigError`. The texture: the pattern (stripes by height; tartan checks that widen
+    towards the hem; dots where the surface cuts jittered 3D balls) with fold valleys shaded, a
+    waistband and a hem band in ``dress_color2``, the inside/lining in a dark ``dress_color``.
+  - Long hair (any pose): strands fan from the front hairline (a pole 40 degrees forward of the
+    top of the head) over the top, back and sides of the head (95 degrees either side of the
+    back, so the face stays clear), 6 mm beyond the skull, each leaving the head where it is
+    furthest from the head's vertical axis and hanging from there to 3 cm below the ``spine01``
+    joint (about the shoulder blades), splaying out 30%, leaning back (at most 50 degrees) to pass
+    6 mm behind the neck, shoulders and back. 1.6 cm thick; ``hair_color`` with strands, a darker
+    underside.
+- :func:`random_specs` draws varied, reproducible specs for benchmarks (no garment meshes).
 """
 
 from __future__ import annotations
 
 import functools
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -94,10 +140,18 @@ SLEEVES = ("short", "long")
 LOWER_GARMENTS = ("trousers", "shorts", "skirt")
 LOWER_PATTERNS = ("solid", "denim", "checks")
 HAIR_STYLES = ("short", "long")
+DRESSES = ("none", "skirt", "long")  # a loose garment mesh: none, waist to knee, waist to ankle (a gown)
+DRESS_PATTERNS = ("solid", "stripes", "checks", "dots")
+GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised")  # dress poses
+GARMENT_TEXTURE = "garments.png"
 _PALETTE: tuple[RGB, ...] = (
     (200, 30, 40), (30, 80, 180), (240, 200, 40), (30, 140, 70), (240, 240, 235), (25, 25, 30),
     (120, 40, 140), (240, 120, 30), (40, 170, 190), (150, 150, 155), (90, 50, 30), (230, 110, 150),
 )
+
+# the fields added with garments: left out of SubjectSpec.to_dict (and so of truth ``spec_json``) while
+# at their defaults, so subjects without garments are written byte-identically to before
+_GARMENT_FIELDS = ("dress", "dress_flare", "dress_color", "dress_color2", "dress_pattern", "long_hair")
 
 _SEGMENTATION = "data/segmentation/body_parts_segmentation"
 _PHENOTYPE = ("gender", "age", "muscle", "weight", "height", "proportions")
@@ -129,6 +183,13 @@ class SubjectSpec:
     lower_pattern: str = "denim"
     shoe_color: RGB = (25, 25, 30)
     seed: int = 0
+    # garments that are not the body (separate meshes, see the module docstring); off by default
+    dress: str = "none"  # one of DRESSES
+    dress_flare: float = 0.0  # half-width of the hem in metres; 0 = automatic (1.5x / 2x the hip half-width)
+    dress_color: RGB = (128, 36, 84)
+    dress_color2: RGB = (236, 214, 170)  # second colour of the pattern, the waistband and the hem band
+    dress_pattern: str = "solid"  # one of DRESS_PATTERNS
+    long_hair: bool = False  # a hair mesh down to the shoulder blades (hair_style only paints the body)
 
     def __post_init__(self) -> None:
         for name in _PHENOTYPE:
@@ -136,7 +197,8 @@ class SubjectSpec:
             if not 0.0 <= float(value) <= 1.0:
                 raise ConfigError(f"SubjectSpec.{name} must be in [0, 1], got {value}")
         for name, allowed in (("pose", POSES), ("hair_style", HAIR_STYLES), ("shirt_pattern", SHIRT_PATTERNS),
-                              ("sleeves", SLEEVES), ("lower", LOWER_GARMENTS), ("lower_pattern", LOWER_PATTERNS)):
+                              ("sleeves", SLEEVES), ("lower", LOWER_GARMENTS), ("lower_pattern", LOWER_PATTERNS),
+                              ("dress", DRESSES), ("dress_pattern", DRESS_PATTERNS)):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"SubjectSpec.{name} must be one of {allowed}, got {getattr(self, name)!r}")
         for f in fields(self):
@@ -147,14 +209,35 @@ class SubjectSpec:
                 object.__setattr__(self, f.name, value)
         if len(self.shirt_text) > 4:
             raise ConfigError(f"SubjectSpec.shirt_text holds at most 4 characters, got {self.shirt_text!r}")
+        flare = float(self.dress_flare)
+        if flare != 0.0 and not 0.1 <= flare <= 0.8:
+            raise ConfigError(f"SubjectSpec.dress_flare must be 0 (automatic) or in [0.1, 0.8] m, got {flare}")
+        object.__setattr__(self, "dress_flare", flare)
+        if self.dress != "none" and self.pose not in GARMENT_POSES:
+            raise ConfigError(f"SubjectSpec.dress {self.dress!r} needs an upright pose {GARMENT_POSES}, "
+                              f"got {self.pose!r}")
+        if not isinstance(self.long_hair, (bool, np.bool_)):
+            raise ConfigError(f"SubjectSpec.long_hair must be a bool, got {self.long_hair!r}")
+        object.__setattr__(self, "long_hair", bool(self.long_hair))
 
     @property
     def shape_values(self) -> list[float]:
         """Anny phenotype values in ``AnnyBody.shape_names`` order."""
         return [float(getattr(self, name)) for name in _PHENOTYPE]
 
+    @property
+    def has_garments(self) -> bool:
+        """Whether the subject wears a garment mesh (a dress or long hair)."""
+        return self.dress != "none" or self.long_hair
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The spec as a dict; the garment fields are left out while at their defaults."""
+        data = asdict(self)
+        defaults = {f.name: f.default for f in fields(self)}
+        for name in _GARMENT_FIELDS:
+            if data[name] == defaults[name]:
+                del data[name]
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> SubjectSpec:
@@ -163,6 +246,31 @@ class SubjectSpec:
         if unknown:
             raise ConfigError(f"unknown SubjectSpec fields {unknown}")
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+
+# Example subjects wearing garment meshes (tests, benchmarks, the contact sheet
+# benchmarks/results/synthetic_garments.png); build one with make_subject(GARMENT_EXAMPLES[name], out_dir).
+GARMENT_EXAMPLES: dict[str, SubjectSpec] = {
+    # a knee-length skirt over bare legs (painted shorts under it), long auburn hair
+    "skirt_long_hair": SubjectSpec(
+        gender=0.9, weight=0.45, pose="standing", skin_tone=SKIN_TONES["light"], hair_color=HAIR_COLORS["auburn"],
+        hair_style="long", shirt_color=(240, 240, 235), shirt_color2=(30, 80, 180), shirt_pattern="solid",
+        shirt_text="", lower="shorts", lower_pattern="solid", lower_color=(30, 80, 180), shoe_color=(150, 30, 40),
+        dress="skirt", dress_color=(30, 80, 180), dress_color2=(240, 200, 40), dress_pattern="checks",
+        long_hair=True, seed=11),
+    # an ankle-length gown (hem half-width 0.35 m), long dark hair
+    "gown": SubjectSpec(
+        gender=0.85, age=0.7, pose="standing", skin_tone=SKIN_TONES["brown"], hair_color=HAIR_COLORS["black"],
+        hair_style="long", shirt_color=(128, 36, 84), shirt_color2=(236, 214, 170), shirt_pattern="solid",
+        shirt_text="", sleeves="long", lower="skirt", lower_pattern="solid", lower_color=(128, 36, 84),
+        dress="long", dress_flare=0.35, dress_color=(128, 36, 84), dress_color2=(236, 214, 170), long_hair=True,
+        seed=12),
+    # a polka-dot skirt on a walking subject with short (painted) hair: the skirt drapes over the legs
+    "walking_skirt": SubjectSpec(
+        gender=0.7, weight=0.6, pose="walking", skin_tone=SKIN_TONES["tan"], hair_color=HAIR_COLORS["dark-brown"],
+        shirt_color=(30, 140, 70), shirt_pattern="stripes", lower="shorts", lower_color=(25, 25, 30),
+        dress="skirt", dress_color=(240, 120, 30), dress_color2=(250, 245, 235), dress_pattern="dots", seed=13),
+}
 
 
 @dataclass
@@ -179,6 +287,14 @@ class Subject:
     coco17: np.ndarray  # (17, 3) float32
     joint_names: list[str]
     albedo: np.ndarray  # (R, R, 3) uint8, top row first
+    garments: list[Garment] = field(default_factory=list)  # the dress, the hair (when the spec has them)
+    garment_albedo: np.ndarray | None = None  # (R, R, 3) uint8, the garments' texture
+    garment_truth: dict = field(default_factory=dict)  # the garments' truth arrays (see make_subject)
+
+    @property
+    def all_vertices(self) -> np.ndarray:
+        """(N, 3) the body's vertices followed by every garment's (the OBJ's ``v`` lines)."""
+        return np.concatenate([self.vertices, *(g.vertices for g in self.garments)])
 
 
 # ----------------------------------------------------------------------------- body model
@@ -713,6 +829,389 @@ def make_albedo(spec: SubjectSpec, model: AnnyBody, rest_vertices: np.ndarray, r
     return painter.image()
 
 
+# ----------------------------------------------------------------------------- garments
+
+@dataclass
+class Garment:
+    """A garment that is not the body: its own closed mesh and OBJ object, textured from
+    :data:`GARMENT_TEXTURE` (see the module docstring)."""
+
+    name: str  # the OBJ object: "dress" or "hair"
+    vertices: np.ndarray  # (V, 3) float32, world frame
+    faces: np.ndarray  # (F, 3) int64 into vertices: closed, consistently wound, normals outward
+    uvs: np.ndarray  # (T, 2) float32 into the garment texture, v up
+    uv_faces: np.ndarray  # (F, 3) int64 into uvs
+
+
+# UV rectangles (u0, v0, u1, v1) in the garment texture: outside and lining (inside, rims) of each
+_UV_DRESS = (0.01, 0.42, 0.99, 0.99)
+_UV_DRESS_LINING = (0.01, 0.35, 0.99, 0.39)
+_UV_HAIR = (0.01, 0.08, 0.99, 0.31)
+_UV_HAIR_INNER = (0.01, 0.01, 0.99, 0.05)
+_DRESS_SEGMENTS = 96  # vertices around a ring
+_DRESS_MARGIN = 0.012  # from the body (its support in each direction) to the dress's outside
+_DRESS_THICKNESS = 0.006
+_HAIR_CLEARANCE = 0.006  # from the body to the hair's inside
+_HAIR_THICKNESS = 0.016
+
+
+def _closed_shell(outer: np.ndarray, inner: np.ndarray, wrap: bool, rect_outer, rect_inner) -> tuple:
+    """A closed, consistently wound shell between two (R, C, 3) grids of the same layout: both
+    grids' quads, and rims joining them along the grid's border (the first and last rows; the first
+    and last columns too unless ``wrap``, where column C-1 joins column 0). Returns
+    ``(vertices, faces, uvs, uv_faces)``: the outer grid's UVs span ``rect_outer``, the inner grid's
+    and the rims' ``rect_inner`` (rows top to bottom, columns left to right, one seam column when
+    wrapping). Faces are wound so that the enclosed volume is positive (normals outward)."""
+    R, C = outer.shape[:2]
+    CU = C + 1 if wrap else C
+
+    def vid(layer: int, r, c):
+        return layer * R * C + r * C + (c % C)
+
+    def tid(layer: int, r, c):
+        return layer * R * CU + r * CU + c
+
+    r, c = (g.ravel() for g in np.meshgrid(np.arange(R - 1), np.arange(CU - 1), indexing="ij"))
+    a, b, cc, d = (r, c), (r + 1, c), (r + 1, c + 1), (r, c + 1)
+    faces, uv_faces = [], []
+    for layer, tris in ((0, ((a, b, cc), (a, cc, d))), (1, ((a, cc, b), (a, d, cc)))):
+        for tri in tris:
+            faces.append(np.stack([vid(layer, *p) for p in tri], axis=1))
+            uv_faces.append(np.stack([tid(layer, *p) for p in tri], axis=1))
+    # the outer grid's border as its triangles run it (p -> q); each edge gets a rim quad to its twin
+    cols, rows = np.arange(CU - 1), np.arange(R - 1)
+    top, bottom = np.zeros_like(cols), np.full_like(cols, R - 1)
+    edges = [((top, cols + 1), (top, cols)), ((bottom, cols), (bottom, cols + 1))]
+    if not wrap:
+        left, right = np.zeros_like(rows), np.full_like(rows, C - 1)
+        edges += [((rows, left), (rows + 1, left)), ((rows + 1, right), (rows, right))]
+    for p, q in edges:
+        faces += [np.stack([vid(0, *q), vid(0, *p), vid(1, *p)], axis=1),
+                  np.stack([vid(0, *q), vid(1, *p), vid(1, *q)], axis=1)]
+        uv_faces += [np.stack([tid(1, *q), tid(1, *p), tid(1, *p)], axis=1),
+                     np.stack([tid(1, *q), tid(1, *p), tid(1, *q)], axis=1)]
+    vertices = np.concatenate([outer.reshape(-1, 3), inner.reshape(-1, 3)])
+    faces_a, uv_a = np.concatenate(faces).astype(np.int64), np.concatenate(uv_faces).astype(np.int64)
+    tri = vertices[faces_a]
+    if np.einsum("fd,fd->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() < 0:
+        faces_a, uv_a = faces_a[:, [0, 2, 1]], uv_a[:, [0, 2, 1]]
+    uvs = np.concatenate([_grid_uvs(R, CU, rect_outer), _grid_uvs(R, CU, rect_inner)])
+    return vertices, faces_a, uvs, uv_a
+
+
+def _grid_uvs(rows: int, cols: int, rect) -> np.ndarray:
+    u0, v0, u1, v1 = rect
+    uu, vv = np.meshgrid(np.linspace(u0, u1, cols), np.linspace(v1, v0, rows))
+    return np.stack([uu, vv], axis=-1).reshape(-1, 2)
+
+
+def _circular_smooth(values: np.ndarray, width: int) -> np.ndarray:
+    """Box filter of ``width`` (odd) along the last axis, wrapping around."""
+    half = width // 2
+    return np.mean([np.roll(values, k, axis=-1) for k in range(-half, half + 1)], axis=0)
+
+
+def slice_extent(vertices: np.ndarray, faces: np.ndarray, y: float) -> np.ndarray | None:
+    """``[x_min, x_max, z_min, z_max]`` of a mesh's cross-section by the horizontal plane at height
+    ``y`` (the edge crossings), or None when the plane misses the mesh."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    points = []
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        a, b = tri[:, i], tri[:, j]
+        da, db = a[:, 1] - y, b[:, 1] - y
+        cross = da * db < 0
+        t = (da[cross] / (da[cross] - db[cross]))[:, None]
+        points.append(a[cross] + t * (b[cross] - a[cross]))
+    p = np.concatenate(points)
+    if not len(p):
+        return None
+    return np.array([p[:, 0].min(), p[:, 0].max(), p[:, 2].min(), p[:, 2].max()])
+
+
+def _surface_samples(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray, n: int = 4) -> np.ndarray:
+    """Points on the faces whose three vertices are all in ``keep`` (V,) bool: a barycentric grid of
+    ``n`` steps per edge on each (corners included; some body triangles are 5 cm long)."""
+    f = faces[keep[faces].all(axis=1)]
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    ok = i + j <= n
+    w = np.stack([i[ok], j[ok], n - i[ok] - j[ok]], axis=1) / n
+    return np.unique(np.einsum("bk,fkd->fbd", w, vertices[f]).reshape(-1, 3), axis=0)  # shared corners/edges once
+
+
+def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray,
+                J: dict[str, np.ndarray], rng: np.random.Generator) -> tuple[Garment, dict, np.ndarray, np.ndarray]:
+    """The dress around the posed body: rings of :data:`_DRESS_SEGMENTS` vertices from the waist down
+    to the hem, each an ellipse widening from the waist's to the hem's, pushed out wherever the
+    torso, legs or feet (not the arms) come closer than :data:`_DRESS_MARGIN` (in each direction of a
+    ring, beyond the body's support in that direction), never narrower than the ring above (cloth
+    hangs), with soft folds growing towards the hem. Returns the garment, its truth scalars, the
+    outside grid (rows, segments, 3) and a per-vertex fold shade for the texture."""
+    pts = _surface_samples(vertices, faces, np.isin(groups, [_TORSO, _LEG_L, _LEG_R, _FOOT_L, _FOOT_R]))
+    y_top = float(J["spine04"][1]) + 0.01  # the painted waist (the belt's top)
+    knee_y = 0.5 * float(J["lowerleg01.L"][1] + J["lowerleg01.R"][1])
+    ankle_y = 0.5 * float(J["foot.L"][1] + J["foot.R"][1])
+    y_hem = knee_y - 0.12 * (knee_y - ankle_y) if spec.dress == "skirt" else max(0.5 * ankle_y, 0.015)
+    rows = max(16, int(np.ceil((y_top - y_hem) / 0.02))) + 1
+    ys = np.linspace(y_top, y_hem, rows)
+    s = (y_top - ys) / (y_top - y_hem)  # 0 at the waist, 1 at the hem
+    dy = max(0.6 * (ys[0] - ys[1]), 0.012)
+    theta = 2.0 * np.pi * np.arange(_DRESS_SEGMENTS) / _DRESS_SEGMENTS
+    dirs = np.stack([np.cos(theta), np.sin(theta)], axis=1)  # (x, z)
+
+    def band(y: float) -> np.ndarray:
+        return pts[np.abs(pts[:, 1] - y) < dy][:, [0, 2]]
+
+    top, hem = band(y_top), band(y_hem)
+    c_top = 0.5 * (top.min(axis=0) + top.max(axis=0))
+    c_hem = 0.5 * (hem.min(axis=0) + hem.max(axis=0)) if len(hem) else c_top
+    centres = c_top + (c_hem - c_top) * s[:, None]
+    a_top, b_top = 0.5 * (top.max(axis=0) - top.min(axis=0)) + _DRESS_MARGIN
+    hips = band(float(J["root"][1]) - 0.03)
+    hip_half_width = 0.5 * float(hips[:, 0].max() - hips[:, 0].min())
+    a_hem = float(spec.dress_flare) or (1.5 if spec.dress == "skirt" else 2.0) * hip_half_width
+    a_hem = max(a_hem, a_top)
+    b_hem = max(0.85 * a_hem, b_top)
+    f = s ** 1.2
+    a = (a_top + (a_hem - a_top) * f)[:, None]
+    b = (b_top + (b_hem - b_top) * f)[:, None]
+    r_ellipse = a * b / np.sqrt((b * dirs[:, 0]) ** 2 + (a * dirs[:, 1]) ** 2)
+    support = np.zeros((rows, _DRESS_SEGMENTS))
+    for i, y in enumerate(ys):
+        q = band(float(y))
+        if len(q):
+            support[i] = ((q - centres[i]) @ dirs.T).max(axis=0)
+    need = support + _DRESS_MARGIN
+    r = np.maximum.accumulate(np.maximum(r_ellipse, need), axis=0)  # never narrower further down
+    r = np.maximum(_circular_smooth(_circular_smooth(r, 7), 7), need)
+    phase = rng.uniform(0.0, 2.0 * np.pi, size=2)
+    folds = 12 if spec.dress == "skirt" else 16
+    fold = 0.5 + 0.5 * np.sin(folds * theta + phase[0] + 0.6 * np.sin(3 * theta + phase[1]))
+    amplitude = (0.018 if spec.dress == "skirt" else 0.026) * (a_hem / 0.3) * s ** 1.5
+    r = r + amplitude[:, None] * fold[None]  # folds only push outwards
+
+    def ring_points(radius: np.ndarray) -> np.ndarray:
+        x = centres[:, :1] + radius * dirs[:, 0]
+        z = centres[:, 1:] + radius * dirs[:, 1]
+        return np.stack([x, np.broadcast_to(ys[:, None], x.shape), z], axis=-1)
+
+    outer, inner = ring_points(r), ring_points(r - _DRESS_THICKNESS)
+    v, faces, uvs, uv_faces = _closed_shell(outer, inner, True, _UV_DRESS, _UV_DRESS_LINING)
+    shade = 1.0 - 0.18 * (1.0 - fold[None]) * np.sqrt(s)[:, None]
+    garment = Garment("dress", v.astype(np.float32), faces, uvs.astype(np.float32), uv_faces)
+    gv = garment.vertices.astype(np.float64)
+    hem_ring = gv[(rows - 1) * _DRESS_SEGMENTS:rows * _DRESS_SEGMENTS]  # the outside's last ring
+    knee = slice_extent(gv, faces, knee_y)
+    info = {
+        "dress_kind": np.array(spec.dress),
+        "dress_top_y": np.float32(y_top),
+        "dress_hem_y": np.float32(y_hem),
+        "dress_hem_half_width": np.float32(0.5 * (hem_ring[:, 0].max() - hem_ring[:, 0].min())),
+        "dress_hem_half_depth": np.float32(0.5 * (hem_ring[:, 2].max() - hem_ring[:, 2].min())),
+        "dress_knee_y": np.float32(knee_y),
+        "dress_knee_half_width": np.float32(0.5 * (knee[1] - knee[0])),
+        "dress_knee_half_depth": np.float32(0.5 * (knee[3] - knee[2])),
+    }
+    return garment, info, outer, shade
+
+
+def _min_filter(grid: np.ndarray, radius: int) -> np.ndarray:
+    """Minimum over a (2 radius + 1)^2 window (inf padding)."""
+    padded = np.pad(grid, radius, constant_values=np.inf)
+    h, w = grid.shape
+    out = np.full_like(grid, np.inf)
+    for i in range(2 * radius + 1):
+        for j in range(2 * radius + 1):
+            out = np.minimum(out, padded[i:i + h, j:j + w])
+    return out
+
+
+def _hair_mesh(vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray,
+               J: dict[str, np.ndarray]) -> tuple[Garment, dict, np.ndarray]:
+    """Long hair: strands fanning from the front hairline over the top, back and sides of the head
+    (:data:`_HAIR_CLEARANCE` beyond the skull), each leaving the head where it is widest and hanging
+    from there to the shoulder blades, leaning back (at most 50 degrees) to pass behind the neck,
+    shoulders and back (not the hands), splaying out a little. The strands are the columns of the
+    inside grid; the outside lies :data:`_HAIR_THICKNESS` further out along the grid's normals.
+    Returns the garment, its truth scalars and the outside grid (rows, columns, 3)."""
+    head = _surface_samples(vertices, faces, groups == _HEAD, 2)
+    lo, hi = head.min(axis=0), head.max(axis=0)
+    centre = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (float(J["head"][1]) + hi[1]), float(J["head"][2])])
+    # strand directions from the centre: polar angle beta from the hairline axis a (up, 40 degrees
+    # forward), azimuth phi about it from e1 (up and back) towards e2 (the person's left)
+    tilt = np.radians(40.0)
+    a = np.array([0.0, np.cos(tilt), np.sin(tilt)])
+    e1 = np.array([0.0, np.sin(tilt), -np.cos(tilt)])
+    e2 = np.array([1.0, 0.0, 0.0])
+    beta = np.radians(np.linspace(6.0, 178.0, 87))[:, None, None]
+    phi = np.radians(np.linspace(-95.0, 95.0, 39))[None, :, None]
+    U = np.cos(beta) * a + np.sin(beta) * (np.cos(phi) * e1 + np.sin(phi) * e2)  # (B, C, 3)
+    d = head - centre
+    dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+    radius = np.empty(U.shape[:2])
+    for k in range(U.shape[1]):
+        proj, cos = U[:, k] @ d.T, U[:, k] @ dn.T
+        r = np.where(cos > np.cos(np.radians(12.0)), proj, -np.inf).max(axis=1)
+        radius[:, k] = np.where(np.isfinite(r), r, np.where(cos > 0.8, proj, -np.inf).max(axis=1))
+    padded = np.pad(radius, 1, mode="edge")
+    smooth = np.mean([padded[i:i + radius.shape[0], j:j + radius.shape[1]] for i in range(3) for j in range(3)], axis=0)
+    scalp = centre + (np.maximum(radius, smooth) + _HAIR_CLEARANCE)[..., None] * U
+    # each strand leaves the head where it lies furthest from the head's vertical axis (past the crown)
+    rho = np.linalg.norm((scalp - centre)[..., [0, 2]], axis=-1)
+    crown = np.argmin(rho, axis=0)
+    leave = np.array([c0 + int(np.argmax(rho[c0:, k])) for k, c0 in enumerate(crown)])
+
+    # below that it hangs, behind the body's back-most point near it
+    body = _surface_samples(vertices, faces, ~np.isin(groups, [_HAND_L, _HAND_R]))
+    cell = 0.01
+    origin = body[:, [0, 1]].min(axis=0)
+    ij = np.floor((body[:, [0, 1]] - origin) / cell).astype(np.int64)
+    back = np.full(ij.max(axis=0) + 1, np.inf)
+    np.minimum.at(back, (ij[:, 0], ij[:, 1]), body[:, 2])
+    back = _min_filter(back, 3)
+
+    def z_back(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        i = np.floor((x - origin[0]) / cell).astype(np.int64)
+        j = np.floor((y - origin[1]) / cell).astype(np.int64)
+        ok = (i >= 0) & (i < back.shape[0]) & (j >= 0) & (j < back.shape[1])
+        out = np.full(x.shape, np.inf)
+        out[ok] = back[i[ok], j[ok]]
+        return out
+
+    y_bottom = float(J["spine01"][1]) - 0.03
+    rows = 56
+    inner = np.empty((rows, U.shape[1], 3))
+    for k in range(U.shape[1]):
+        start = scalp[leave[k], k]
+        n = max(4, int(np.ceil((start[1] - y_bottom) / 0.01)))
+        t = np.linspace(0.0, 1.0, n + 1)[1:]
+        y = start[1] + (y_bottom - start[1]) * t
+        x = centre[0] + (start[0] - centre[0]) * (1.0 + 0.3 * t)
+        need = z_back(x, y) - _HAIR_CLEARANCE
+        ahead = need[None, :] + 1.2 * (y[:, None] - y[None, :])  # [row, lower row]
+        ahead = np.where(np.triu(np.ones((n, n), dtype=bool)), ahead, np.inf).min(axis=1)
+        z = np.minimum.accumulate(np.minimum(start[2], ahead))
+        strand = np.concatenate([scalp[:leave[k] + 1, k], np.stack([x, y, z], axis=1)])
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(strand, axis=0), axis=1))])
+        at = np.linspace(0.0, arc[-1], rows)
+        inner[:, k] = np.stack([np.interp(at, arc, strand[:, i]) for i in range(3)], axis=1)
+    # the outside: along the inside grid's normals, turned away from the head's vertical axis
+    normal = np.cross(np.gradient(inner, axis=1), np.gradient(inner, axis=0))
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+    away = inner - centre
+    away[..., 1] = 0.0
+    normal *= np.where(np.einsum("rcd,rcd->rc", normal, away) < 0, -1.0, 1.0)[..., None]
+    outer = inner + _HAIR_THICKNESS * normal
+    v, faces, uvs, uv_faces = _closed_shell(outer, inner, False, _UV_HAIR, _UV_HAIR_INNER)
+    garment = Garment("hair", v.astype(np.float32), faces, uvs.astype(np.float32), uv_faces)
+    info = {"hair_bottom_y": np.float32(garment.vertices[:, 1].min()),
+            "hair_top_y": np.float32(garment.vertices[:, 1].max()),
+            "hair_back_z": np.float32(garment.vertices[:, 2].min())}
+    return garment, info, outer
+
+
+def _grid_sample(grid: np.ndarray, rf: np.ndarray, cf: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a (R, C, K) grid at fractional rows ``rf`` in [0, 1] (top to bottom) and
+    columns ``cf`` in [0, 1]."""
+    R, C = grid.shape[:2]
+    r, c = rf * (R - 1), cf * (C - 1)
+    r0 = np.clip(np.floor(r).astype(np.int64), 0, R - 2)
+    c0 = np.clip(np.floor(c).astype(np.int64), 0, C - 2)
+    wr, wc = (r - r0)[..., None], (c - c0)[..., None]
+    return ((1 - wr) * ((1 - wc) * grid[r0, c0] + wc * grid[r0, c0 + 1])
+            + wr * ((1 - wc) * grid[r0 + 1, c0] + wc * grid[r0 + 1, c0 + 1]))
+
+
+def _garment_albedo(spec: SubjectSpec, resolution: int, dress: tuple | None, hair: np.ndarray | None,
+                    rng: np.random.Generator) -> np.ndarray:
+    """The (R, R, 3) uint8 garment texture: the dress's outside (pattern laid out on its 3D surface,
+    fold valleys shaded, a waistband and a hem band in ``dress_color2``) and lining, the hair's
+    outside (strands) and underside; gutters filled."""
+    R = resolution
+    image = np.zeros((R, R, 3))
+    valid = np.zeros((R, R), dtype=bool)
+    noise = rng.standard_normal((R, R))
+    centre_u = (np.arange(R) + 0.5) / R
+    centre_v = 1.0 - (np.arange(R) + 0.5) / R  # row 0 is the top of the image
+
+    def region(rect):
+        u0, v0, u1, v1 = rect
+        cols = np.flatnonzero((centre_u >= u0) & (centre_u <= u1))
+        rows = np.flatnonzero((centre_v >= v0) & (centre_v <= v1))
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        rf = (v1 - centre_v[rr]) / (v1 - v0)
+        cf = (centre_u[cc] - u0) / (u1 - u0)
+        valid[rr, cc] = True
+        return rr, cc, rf, cf
+
+    if dress is not None:
+        outer, shade = dress
+        grid = np.concatenate([outer, outer[:, :1]], axis=1)  # the seam column
+        shade = np.concatenate([shade, shade[:, :1]], axis=1)[..., None]
+        c1, c2 = _col(spec.dress_color), _col(spec.dress_color2)
+        rr, cc, rf, cf = region(_UV_DRESS)
+        P = _grid_sample(grid, rf, cf)
+        y = P[..., 1]
+        if spec.dress_pattern == "stripes":
+            cloth = np.where(((y / 0.07) % 1.0 < 0.3)[..., None], c2, c1)
+        elif spec.dress_pattern == "checks":  # a tartan cut on the round: checks widen towards the hem
+            waist = float(np.linalg.norm(np.diff(grid[0], axis=0), axis=-1).sum())
+            across = cf * max(8, 2 * round(waist / 0.12))  # about 6 cm checks at the waist
+            down = y / 0.06
+            odd = ((np.floor(across) + np.floor(down)) % 2).astype(bool)[..., None]
+            cloth = np.where(odd, c1, 0.6 * c1 + 0.4 * c2)
+            cloth[(np.abs(across % 1.0 - 0.5) < 0.06) | (np.abs(down % 1.0 - 0.5) < 0.06)] = c2
+        elif spec.dress_pattern == "dots":  # where the surface cuts balls jittered about a 3D grid
+            cell = np.floor(P / 0.06)
+            jitter = np.stack([(np.sin(cell @ np.array(w)) * 43758.5453) % 1.0 for w in
+                               ((12.9898, 78.233, 37.719), (39.346, 11.135, 83.155), (73.156, 52.235, 9.151))], axis=-1)
+            centre = (cell + 0.5) * 0.06 + 0.02 * (jitter - 0.5)
+            cloth = np.where((np.linalg.norm(P - centre, axis=-1) < 0.024)[..., None], c2, c1)
+        else:
+            cloth = np.broadcast_to(c1, P.shape).copy()
+        cloth = cloth * _grid_sample(shade, rf, cf) * (1.0 + 0.03 * noise[rr, cc])[..., None]
+        y_top, y_hem = grid[0, 0, 1], grid[-1, 0, 1]
+        band = (y > y_top - 0.03) | (y < y_hem + 0.025)
+        cloth[band] = c2 * 0.9 * (1.0 + 0.03 * noise[rr, cc][band])[:, None]
+        image[rr, cc] = cloth
+        rr, cc, _, _ = region(_UV_DRESS_LINING)
+        image[rr, cc] = c1 * 0.6
+    if hair is not None:
+        colour = _col(spec.hair_color)
+        rr, cc, rf, cf = region(_UV_HAIR)
+        strands = 0.9 + 0.08 * np.sin(2 * np.pi * (cf * 70.0 + 0.6 * np.sin(rf * 9.0 + cf * 25.0))) \
+            + 0.05 * np.sin(2 * np.pi * cf * 23.0) + 0.04 * noise[rr, cc]
+        image[rr, cc] = colour * strands[..., None]
+        rr, cc, _, _ = region(_UV_HAIR_INNER)
+        image[rr, cc] = colour * 0.7
+    return np.clip(np.rint(_fill_gutters(image, valid) * 255.0), 0, 255).astype(np.uint8)
+
+
+def build_garments(spec: SubjectSpec, vertices: np.ndarray, joints: dict[str, np.ndarray],
+                   texture_size: int = TEXTURE_SIZE) -> tuple[list[Garment], np.ndarray, dict]:
+    """The garment meshes of a spec around its posed body (``vertices`` (V, 3) and ``joints`` in the
+    world frame), the garment texture and the truth arrays (see :func:`make_subject`)."""
+    if not spec.has_garments:
+        return [], np.zeros((0, 0, 3), np.uint8), {}
+    model = body_model()
+    groups, faces = _vertex_groups(model), model.faces.numpy()
+    v = np.asarray(vertices, dtype=np.float64)
+    rng = np.random.default_rng(np.random.SeedSequence([int(spec.seed), 0x6A2]))
+    garments, truth = [], {}
+    dress = hair = None
+    if spec.dress != "none":
+        garment, info, outer, shade = _dress_mesh(spec, v, faces, groups, joints, rng)
+        garments.append(garment)
+        truth.update(info, dress_vertices=garment.vertices, dress_faces=garment.faces)
+        dress = (outer, shade)
+    if spec.long_hair:
+        garment, info, hair = _hair_mesh(v, faces, groups, joints)
+        garments.append(garment)
+        truth.update(info, hair_vertices=garment.vertices, hair_faces=garment.faces)
+    truth["garments"] = np.array([g.name for g in garments])
+    return garments, _garment_albedo(spec, texture_size, dress, hair, rng), truth
+
+
+
 # ----------------------------------------------------------------------------- subjects
 
 def build_subject(spec: SubjectSpec, texture_size: int = TEXTURE_SIZE) -> Subject:
@@ -733,11 +1232,15 @@ def build_subject(spec: SubjectSpec, texture_size: int = TEXTURE_SIZE) -> Subjec
     if not np.isfinite(vertices).all():
         raise RuntimeError(f"non-finite vertices for pose {spec.pose!r}")
     albedo = make_albedo(spec, model, rest_vertices, rest_joints, texture_size)
+    joints = posed.joints[0].numpy().astype(np.float32)
+    garments, garment_albedo, garment_truth = build_garments(
+        spec, vertices, {n: joints[i].astype(np.float64) for i, n in enumerate(model.joint_names)}, texture_size)
     return Subject(
         spec=spec, params=params.detach(), vertices=vertices, faces=model.faces.numpy().copy(),
         uvs=model.uvs.numpy().astype(np.float32), uv_faces=model.uv_faces.numpy().copy(),
-        joints=posed.joints[0].numpy().astype(np.float32), coco17=posed.coco17[0].numpy().astype(np.float32),
+        joints=joints, coco17=posed.coco17[0].numpy().astype(np.float32),
         joint_names=list(model.joint_names), albedo=albedo,
+        garments=garments, garment_albedo=garment_albedo if garments else None, garment_truth=garment_truth,
     )
 
 
@@ -755,6 +1258,15 @@ def _obj_text(subject: Subject, mtl_name: str) -> str:
     lines += [f"vt {a:.6f} {b:.6f}" for a, b in subject.uvs.tolist()]
     f, t = subject.faces + 1, subject.uv_faces + 1
     lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}" for (a, b, c), (ta, tb, tc) in zip(f.tolist(), t.tolist(), strict=True)]
+    v_offset, t_offset = len(subject.vertices), len(subject.uvs)
+    for g in subject.garments:  # after the body: the body's indices stay Anny's
+        lines += [f"o {g.name}", "usemtl garments"]
+        lines += [f"v {a:.6f} {b:.6f} {c:.6f}" for a, b, c in g.vertices.tolist()]
+        lines += [f"vt {a:.6f} {b:.6f}" for a, b in g.uvs.tolist()]
+        f, t = g.faces + 1 + v_offset, g.uv_faces + 1 + t_offset
+        lines += [f"f {a}/{ta} {b}/{tb} {c}/{tc}"
+                  for (a, b, c), (ta, tb, tc) in zip(f.tolist(), t.tolist(), strict=True)]
+        v_offset, t_offset = v_offset + len(g.vertices), t_offset + len(g.uvs)
     return "\n".join(lines) + "\n"
 
 
@@ -767,17 +1279,34 @@ def make_subject(spec: SubjectSpec, out_dir: str | Path, texture_size: int = TEX
     centres, ``coco17_names`` + ``coco17`` (17, 3), ``num_vertices``, ``num_faces``,
     ``world_convention``, ``bbox_min``/``bbox_max`` (3,) of the vertices, ``normalized_from_world``
     (4, 4, see :func:`normalized_from_world`) and ``spec_json`` (the spec as JSON). Coordinates are
-    float32 metres in the world frame of the module docstring.
+    float32 metres in the world frame of the module docstring. ``num_vertices``/``num_faces`` count
+    the body; ``bbox_*`` and ``normalized_from_world`` cover all the OBJ's vertices (garments too).
+
+    With garments it also holds ``garments`` (the object names in OBJ order) and, per garment, its
+    mesh in the world frame (faces index that garment's own vertices from 0; each garment's
+    ``v`` lines follow the previous object's in the OBJ):
+
+    - dress: ``dress_vertices`` (N, 3) float32, ``dress_faces`` (M, 3) int64, ``dress_kind``,
+      ``dress_top_y``/``dress_hem_y`` (waist and hem heights), ``dress_hem_half_width``/
+      ``dress_hem_half_depth`` (half the X / Z extent of the hem's outside ring),
+      ``dress_knee_y`` (the knee joints' mean height) and ``dress_knee_half_width``/
+      ``dress_knee_half_depth`` (half the X / Z extent of the dress's cross-section there);
+    - hair: ``hair_vertices``, ``hair_faces``, ``hair_top_y``, ``hair_bottom_y``, ``hair_back_z``
+      (its highest and lowest point, its back-most z).
     """
     subject = build_subject(spec, texture_size)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_png(out / "albedo.png", subject.albedo)
-    atomic_write_text(out / "subject.mtl", "newmtl albedo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
-                                           "map_Kd albedo.png\n")
+    mtl = "newmtl albedo\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd albedo.png\n"
+    if subject.garments:
+        write_png(out / GARMENT_TEXTURE, subject.garment_albedo)
+        mtl += f"newmtl garments\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {GARMENT_TEXTURE}\n"
+    atomic_write_text(out / "subject.mtl", mtl)
     obj_path = out / "subject.obj"
     atomic_write_text(obj_path, _obj_text(subject, "subject.mtl"))
     model = body_model()
+    everything = subject.all_vertices
     arrays = dict(subject.params.to_numpy())
     arrays.update(
         body_model=np.array(model.name),
@@ -791,11 +1320,12 @@ def make_subject(spec: SubjectSpec, out_dir: str | Path, texture_size: int = TEX
         num_vertices=np.array(len(subject.vertices), dtype=np.int64),
         num_faces=np.array(len(subject.faces), dtype=np.int64),
         world_convention=np.array(WORLD_CONVENTION),
-        bbox_min=subject.vertices.min(axis=0),
-        bbox_max=subject.vertices.max(axis=0),
-        normalized_from_world=normalized_from_world(subject.vertices).astype(np.float32),
+        bbox_min=everything.min(axis=0),
+        bbox_max=everything.max(axis=0),
+        normalized_from_world=normalized_from_world(everything).astype(np.float32),
         spec_json=np.array(json.dumps(spec.to_dict(), sort_keys=True)),
     )
+    arrays.update(subject.garment_truth)
     write_npz(out / "truth.npz", arrays, schema=TRUTH_SCHEMA, version=TRUTH_VERSION)
     return obj_path
 

@@ -9,6 +9,9 @@ Output ``orbit``: a frame set (:mod:`humanvdm_core.frames`)::
     cameras.npz        the SV3D_p orbit cameras (``num_frames``, ``resolution``², 33.8 deg vertical FOV,
                        ``elevation_deg``, radius framing a 1.7-unit subject at ``fill`` of the frame);
                        extra: background (3,), fill
+    proxy.npz          body-prior with ``geometry: clothed`` only: the clothed proxy the orbit was rendered
+                       from (:class:`humanvdm_core.clothed_proxy.ClothedProxy`: vertices and faces in the
+                       orbit's world, texture + UVs, vertex colours, skinning to the Anny rig, front flags)
 
 The last frame (azimuth 0) is the preprocessed input photo itself (person scaled to ``fill`` of the
 frame, centred, composited over the background; A = its mask).
@@ -16,9 +19,13 @@ frame, centred, composited over the background; A = its mask).
 Backends:
 
 - ``body-prior``: NOT a learned model. A deterministic stand-in for the learned multi-view prior: a
-  body fitted to the photo, coloured from the photo (the back mirrored from the front, hair colour
-  on the back of the head), rendered along the orbit (:mod:`humanvdm_core.body_prior`, whose
-  docstring is the contract and lists its limits). It keeps the pipeline runnable on a CPU.
+  body fitted to the photo (2D keypoints, MediaPipe's 3D landmarks, the mask from inside), a clothed
+  proxy built around it that fills the person's whole silhouette with depth (clothing, hair, held
+  objects; :mod:`humanvdm_core.clothed_proxy`), coloured from the photo (the unseen side from the
+  same body part's visible colour, print-free; hair on the back of the head), rendered along the orbit
+  (:mod:`humanvdm_core.body_prior`, whose docstring is the contract and lists its limits). A photo
+  taken from behind is built facing away. What it had to guess (hidden legs or hands, a seated pose,
+  clothing far from the body, the facing) is said in warnings. It keeps the pipeline runnable on a CPU.
 - ``sv3d_p`` / ``sv3d_u``: Stability AI's SV3D video diffusion model from YOUR checkpoint
   (``--sv3d-p-weights`` / ``--sv3d-u-weights``, default ``~/.cache/humanvdm/weights/sv3d_p.safetensors``
   / ``sv3d_u.safetensors``; from huggingface.co/stabilityai/sv3d under the Stability AI Community
@@ -33,6 +40,8 @@ Bad input (no person, body cut off, unreadable photo) exits 3 with a one-line me
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 from humanvdm_core.stage import Param, StageContext, StageSpec
 
@@ -51,6 +60,9 @@ SPEC = StageSpec(
         "fill": Param(0.85, "fraction of the frame height the person spans (the orbit framing)"),
         "fit_iterations": Param(150, "body-prior: optimiser steps of the single-view body fit",
                                 backend="body-prior"),
+        "geometry": Param("clothed", "body-prior: render the orbit from the clothed proxy (the person's whole "
+                                     "silhouette given depth) or from the naked fitted body (the ablation)",
+                          choices=("clothed", "body"), backend="body-prior"),
         "seed": Param(0, "seed (body fit; SV3D sampling noise)"),
         "sv3d_p_weights": Param("~/.cache/humanvdm/weights/sv3d_p.safetensors",
                                 "SV3D_p checkpoint (sgm layout) from huggingface.co/stabilityai/sv3d "
@@ -70,6 +82,7 @@ SPEC = StageSpec(
 )
 
 BACKGROUND = (1.0, 1.0, 1.0)  # SV3D-style white background
+PROXY_FILE = "proxy.npz"  # the clothed proxy beside the orbit (body-prior, geometry "clothed")
 
 
 def _check_params(p: dict, backend: str = "body-prior") -> None:
@@ -109,11 +122,14 @@ def run(ctx: StageContext) -> None:
     torch.manual_seed(p["seed"])
     proxy = build_body_proxy(ctx.inputs["photo"], num_frames=p["num_frames"], size=p["resolution"],
                              elevation_deg=p["elevation_deg"], background=BACKGROUND,
-                             iterations=p["fit_iterations"], fill=p["fill"], seed=p["seed"], logger=ctx.log)
+                             iterations=p["fit_iterations"], fill=p["fill"], seed=p["seed"],
+                             geometry=p["geometry"], logger=ctx.log)
     for warning in proxy.warnings:
         ctx.log.warning("%s", warning)
     frames = proxy.orbit_frames()
     write_frames(ctx.outputs["orbit"], frames, proxy.cameras, {**ctx.attrs(), "layer": "rgba"})
+    if proxy.clothed is not None:
+        proxy.clothed.save(Path(ctx.outputs["orbit"]) / PROXY_FILE)
     ctx.log.info("wrote %d frames at %d² (frame %d is the input view)", len(frames), p["resolution"],
                  proxy.front_index)
 

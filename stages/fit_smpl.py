@@ -4,8 +4,10 @@ Input ``frames``: a frame set (:mod:`humanvdm_core.frames`; normally the 21-fram
 last frame, azimuth 0, is the input photo's view). The person is detected (COCO-17 keypoints and
 mask) on ``fit_frames`` of them ("all" or a count spread evenly around the orbit, always including the
 frame nearest azimuth 0), and ONE static body is fitted to all of them
-(:func:`humanvdm_core.body.fit.fit_body`: keypoints + silhouettes + priors, left/right swaps of
-back views resolved against the 3D estimate). ``fit_frames=1`` is a single-photo fit.
+(:func:`humanvdm_core.body.fit.fit_body`: 2D keypoints + the detector's 3D bone directions +
+one-sided silhouettes (the body inside each mask; covering the mask is off by default, so loose
+clothing does not widen the body) + priors, left/right swaps of back views resolved against the 3D
+estimate). ``fit_frames=1`` is a single-photo fit.
 
 Output ``body``:
 
@@ -28,13 +30,18 @@ Output ``body``:
   ``uv_weights`` (M, J) skinning weights.
 - ``overlay.png``: up to four frames with the fitted mesh's outline (green), the detections (red)
   and the model's keypoints (blue), for people.
-- ``report.json``: fit quality per frame and overall, frames used/skipped and why, warnings.
+- ``report.json``: fit quality per frame and overall, frames used/skipped and why, warnings (every
+  per-frame one) and ``warnings_summary``: the same, one line per kind with the frames it concerns
+  (e.g. "keypoints unusable in 6 of 21 frames (0003, 0007, ...)"), plus skipped frames and fit-quality
+  warnings. The summary lines are also logged as warnings, so they reach the run summary.
 
 Bad input: no person in any selected frame -> an error naming the frames; fewer usable frames than
 needed (at least ``min(3, selected)``, one of them with keypoints) -> an error saying how many.
 """
 
 from __future__ import annotations
+
+import re
 
 from humanvdm_core.stage import Param, StageContext, StageSpec
 
@@ -57,10 +64,20 @@ SPEC = StageSpec(
         "seed": Param(0, "seed (silhouette vertex subsample)"),
         "refine_per_frame": Param(False, "also fit a small per-frame pose correction (stored as per_frame_pose)"),
         "keypoint_weight": Param(1.0, "weight of the 2D keypoint term"),
-        "silhouette_weight": Param(0.3, "weight of the silhouette term"),
+        "silhouette_weight": Param(0.3, "weight of the one-sided silhouette term: the body must lie inside "
+                                        "the person's mask in every frame"),
+        "silhouette_cover_weight": Param(0.0, "weight of the other side: the body must cover the mask's contour. "
+                                              "Off by default: loose clothing (a gown, a coat) is in the mask but "
+                                              "is not body, and covering it widens and stretches the body"),
+        "bone_direction_weight": Param(2.0, "weight of the 3D bone-direction term: the fitted limbs, torso and "
+                                            "neck point like the detector's 3D landmarks (MediaPipe's "
+                                            "world landmarks) in each frame; the depth cue of a single view"),
         "pose_prior_weight": Param(0.05, "weight of the pose prior (squared joint angles)"),
-        "single_view_pose_prior_weight": Param(1.0, "pose prior with one view; with n views it is "
+        "single_view_pose_prior_weight": Param(1.0, "pose prior with one view and no 3D landmarks "
+                                               "(bone_direction_weight 0); with n views it is "
                                                "max(pose_prior_weight, this / n^2)"),
+        "single_view_pose_prior_weight_3d": Param(0.1, "the same with 3D landmarks (the bone directions "
+                                                   "observe the limbs' depth, so the prior can be weak)"),
         "shape_prior_weight": Param(0.05, "weight of the shape prior (distance from the average shape)"),
         "model_dir": Param("~/.cache/humanvdm/weights/body_models",
                            "smpl/smplx backends: folder holding smpl/SMPL_NEUTRAL.pkl or smplx/SMPLX_NEUTRAL.npz "
@@ -96,6 +113,63 @@ def select_frames(azimuth_deg, spec: str) -> list[int]:
     return sorted(int(order[p]) for p in picks)
 
 
+_FRAME = r"frame (\S+)"
+# per-frame warnings (from observe_frames / detect_person): pattern (group 1 the frame, group 2 the joints
+# when counted), the summary's head and tail, whether the joints are counted
+_PER_FRAME = (
+    (re.compile(rf"^{_FRAME}: keypoints unusable \((.*)\)$", re.S), "keypoints unusable",
+     "; only the silhouette was fitted there", False),
+    (re.compile(rf"^not clearly visible in {_FRAME}: (.*)$", re.S), "joints not clearly visible", "", True),
+    (re.compile(rf"^part of the body is outside {_FRAME} \(cut off by the frame\): (.*?);.*$", re.S),
+     "body cut off by the frame", "", True),
+    (re.compile(rf"^{_FRAME} shows (\d+) people.*$", re.S), "more than one person", "; the largest one was used",
+     False),
+)
+MAX_LISTED = 6  # frames named per summary line
+
+
+def _frames_text(frames: list[str], total: int) -> str:
+    shown = ", ".join(frames[:MAX_LISTED]) + (", ..." if len(frames) > MAX_LISTED else "")
+    return f"{len(frames)} of {total} frame{'s' if total != 1 else ''} ({shown})"
+
+
+def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str, str] | None = None) -> list[str]:
+    """One line per kind of warning instead of one per frame: "keypoints unusable in 6 of 21 frames
+    (0003, 0007, ...)"; joint names are counted ("left wrist 5x"); warnings that name no frame are
+    kept once each, in order. ``skipped`` (frame name -> why) adds a line for frames not used at all."""
+    kinds: dict[tuple[str, str], tuple[list[str], dict[str, int]]] = {}
+    other: dict[str, list[str]] = {}  # message (its frame name replaced by "*") -> frames
+    for w in warnings:
+        for pattern, head, tail, count in _PER_FRAME:
+            m = pattern.match(w)
+            if m:
+                frames, items = kinds.setdefault((head, tail), ([], {}))
+                if m.group(1) not in frames:
+                    frames.append(m.group(1))
+                for item in (x.strip() for x in m.group(2).split(",")) if count else ():
+                    if item:
+                        items[item] = items.get(item, 0) + 1
+                break
+        else:
+            m = re.search(rf"\b{_FRAME}", w)
+            frames = other.setdefault(re.sub(rf"\b{_FRAME}", "frame *", w) if m else w, [])
+            if m and m.group(1) not in frames:
+                frames.append(m.group(1))
+    out = []
+    if skipped:
+        out.append(f"frames skipped (no usable person): {_frames_text(list(skipped), frames_total)}")
+    for (head, tail), (frames, items) in kinds.items():
+        line = f"{head} in {_frames_text(frames, frames_total)}"
+        if items:
+            line += ": " + ", ".join(f"{k} {n}x" if n > 1 else k
+                                     for k, n in sorted(items.items(), key=lambda kv: (-kv[1], kv[0])))
+        out.append(line + tail)
+    for w, frames in other.items():
+        out.append(f"{w}: {_frames_text(frames, frames_total)}" if len(frames) > 1
+                   else w.replace("frame *", f"frame {frames[0]}") if frames else w)
+    return out
+
+
 def run(ctx: StageContext) -> None:
     import json
     from pathlib import Path
@@ -112,8 +186,11 @@ def run(ctx: StageContext) -> None:
     if not 8 <= p["uv_resolution"] <= 4096:
         raise ConfigError(f"param uv_resolution must be in [8, 4096], got {p['uv_resolution']}")
     options = FitOptions(iterations=p["iterations"], keypoint_weight=p["keypoint_weight"],
-                         silhouette_weight=p["silhouette_weight"], pose_prior_weight=p["pose_prior_weight"],
+                         silhouette_weight=p["silhouette_weight"],
+                         silhouette_cover_weight=p["silhouette_cover_weight"],
+                         bone_direction_weight=p["bone_direction_weight"], pose_prior_weight=p["pose_prior_weight"],
                          single_view_pose_prior_weight=p["single_view_pose_prior_weight"],
+                         single_view_pose_prior_weight_3d=p["single_view_pose_prior_weight_3d"],
                          shape_prior_weight=p["shape_prior_weight"], refine_per_frame=p["refine_per_frame"],
                          seed=p["seed"])
     options.check()
@@ -204,6 +281,10 @@ def run(ctx: StageContext) -> None:
         warnings.append(f"poor keypoint fit: mean reprojection error {mean_reproj:.1f} px")
     if float(iou.mean()) < 0.75:
         warnings.append(f"poor silhouette fit: mean IoU {float(iou.mean()):.2f}")
+    summary = summarize_warnings(warnings, len(selected),
+                                 {paths[i].stem: why for i, why in sorted(failed.items())})
+    for line in summary:
+        ctx.log.warning("%s", line)
     report = {
         "schema": "humanvdm.body_fit_report", "version": 1, "model": model.name, "backend": ctx.backend,
         "topology": p["topology"], "frames_total": len(paths), "frames_selected": selected,
@@ -216,7 +297,7 @@ def run(ctx: StageContext) -> None:
                                                 fit.swapped, strict=True)],
         "shape": {n: r(float(v)) for n, v in zip(model.shape_names, fit.params.shape[0].tolist(), strict=True)},
         "scale": r(float(fit.params.scale)), "uv_resolution": p["uv_resolution"] if model.uvs is not None else None,
-        "warnings": warnings,
+        "warnings": warnings, "warnings_summary": summary,
     }
     atomic_write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
     ctx.log.info("body fit: mean reprojection %.1f px, mean IoU %.3f over %d frame(s)%s", mean_reproj,

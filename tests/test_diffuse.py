@@ -29,9 +29,8 @@ IOU_FLOOR = 0.85
 SIDE_COVERAGE_FLOOR = 0.04
 
 
-@pytest.fixture(scope="module")
-def photo(tmp_path_factory) -> Path:
-    """The synthetic subject's front view (azimuth 0, elevation 0), 512², white background, as a PNG."""
+def _render_photo(root: Path, azimuth: float = 0.0) -> Path:
+    """The synthetic subject seen from ``azimuth`` (elevation 0), 512², white background, as a PNG."""
     torch.set_num_threads(1)
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.io import write_png
@@ -39,15 +38,20 @@ def photo(tmp_path_factory) -> Path:
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
     from humanvdm_core.synthetic import SubjectSpec, make_subject
 
-    root = tmp_path_factory.mktemp("diffuse")
     obj = make_subject(SubjectSpec(pose="a-pose", seed=1), root / "subject", texture_size=512)
     mesh = normalize_scan(load_scan(obj), 1.7)
-    cams = orbit_cameras(1, 512, 33.8, 0.0, framing_radius(1.7, 33.8, 0.8), azimuths_deg=np.array([0.0]))
+    cams = orbit_cameras(1, 512, 33.8, 0.0, framing_radius(1.7, 33.8, 0.8), azimuths_deg=np.array([azimuth]))
     rgba = render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba[0]
     path = root / "photo" / "input.png"
     path.parent.mkdir()
     write_png(path, rgba[..., :3])
     return path
+
+
+@pytest.fixture(scope="module")
+def photo(tmp_path_factory) -> Path:
+    """The synthetic subject's front view (azimuth 0, elevation 0), 512², white background, as a PNG."""
+    return _render_photo(tmp_path_factory.mktemp("diffuse"))
 
 
 def _run_stage(photo: Path, out: Path) -> subprocess.CompletedProcess:
@@ -83,8 +87,50 @@ def test_body_proxy_matches_the_photo(photo):
     # the rendered front looks like the photo where both cover
     both = (raw[0, ..., 3] > 0.99) & (view.mask > 0.99)
     assert np.abs(raw[0][both][:, :3] - view.rgba[both][:, :3]).mean() < 0.12
-    # the colours stay inside the photo's colour range (no black holes from unsampled vertices)
-    assert proxy.mesh.vertex_colors.min() >= 0.0 and proxy.mesh.vertex_colors.max() <= 1.0
+    # the clothed proxy covers the person's whole silhouette in the input view
+    assert proxy.clothed is not None and iou > 0.93  # measured 0.95 at 256² (one grid pixel of border)
+    assert not proxy.facing_away
+    # the unseen side's colours come from the photo's person pixels (no white from the background)
+    colours = proxy.clothed.vertex_colors()[~proxy.clothed.front]
+    assert float(np.mean(colours.min(axis=1) > 0.97)) < 0.01
+
+
+def test_photo_from_behind_is_built_facing_away(tmp_path):
+    """A photo of the subject's back: recognised, the body faces away from the camera, and it is said."""
+    from humanvdm_core.body_prior import build_body_proxy
+
+    photo = _render_photo(tmp_path, azimuth=180.0)
+    proxy = build_body_proxy(photo, size=SIZE, iterations=ITERATIONS)
+    assert proxy.facing_away
+    assert any("from behind" in w for w in proxy.warnings), proxy.warnings
+    nose, ears = proxy.coco17[0], proxy.coco17[[3, 4]].mean(axis=0)
+    assert nose[2] < ears[2] - 0.03  # the camera is on +Z: the face points away from it (-Z)
+
+
+def test_unseen_side_has_hair_on_the_head_and_no_front_print(photo):
+    """The back view of the proxy: the back of the head is hair-coloured (no face), the back of the
+    torso is plain (the shirt's printed badge is not mirrored) and close to the shirt's colour."""
+    from humanvdm_core.body_prior import build_body_proxy
+
+    proxy = build_body_proxy(photo, size=SIZE, iterations=ITERATIONS)
+    back_cam = proxy.cameras.subset([int(np.argmin(np.abs(proxy.cameras.azimuth_deg - 180.0)))])
+    back = proxy.render(back_cam)[0]
+    person = back[..., 3] > 0.99
+    rows = np.nonzero(person.any(axis=1))[0]
+    top, height = rows.min(), rows.max() + 1 - rows.min()
+    head = person.copy()
+    head[top + int(0.08 * height):] = False  # the top of the head
+    inside = proxy.input_view.mask > 0.99
+    top_rows = np.nonzero(inside.any(axis=1))[0][:4]  # the photo's topmost person rows: hair
+    hair_top = np.median(proxy.input_view.rgba[top_rows][..., :3][inside[top_rows]], axis=0)
+    assert np.abs(back[head][:, :3].mean(axis=0) - hair_top).max() < 0.12
+    chest = person.copy()
+    chest[: top + int(0.22 * height)] = False
+    chest[top + int(0.38 * height):] = False
+    cols = np.nonzero(chest.any(axis=0))[0]
+    chest[:, : cols.min() + (cols.max() - cols.min()) // 3] = False
+    chest[:, cols.max() - (cols.max() - cols.min()) // 3:] = False
+    assert back[chest][:, :3].std(axis=0).max() < 0.06  # plain: no badge, no text
 
 
 def test_stage_writes_the_orbit_and_is_deterministic(photo, tmp_path):
@@ -110,6 +156,10 @@ def test_stage_writes_the_orbit_and_is_deterministic(photo, tmp_path):
                     strict=True):
         assert a.read_bytes() == b.read_bytes(), a.name
     assert (outs[0] / "cameras.npz").read_bytes() == (outs[1] / "cameras.npz").read_bytes()
+    assert (outs[0] / "proxy.npz").read_bytes() == (outs[1] / "proxy.npz").read_bytes()
+    proxy = np.load(outs[0] / "proxy.npz")
+    assert proxy["vertices"].shape[0] == proxy["skin_weights"].shape[0] == proxy["vertex_colors"].shape[0]
+    assert np.allclose(proxy["skin_weights"].sum(axis=1), 1.0, atol=1e-5)
 
 
 def test_blank_photo_is_refused(tmp_path):

@@ -162,6 +162,10 @@ def test_stage_writes_body_npz(orbit, tmp_path):
     assert np.all(body["uv_positions"] >= lo - 1e-4) and np.all(body["uv_positions"] <= hi + 1e-4)
     report = json.loads((out / "report.json").read_text())
     assert report["frames_used"] == body["frame_indices"].tolist() and report["mean_iou"] > 0.7
+    # the per-frame warnings, summarised, are logged as warnings (the scheduler's run summary reads them)
+    assert len(report["warnings_summary"]) <= len(report["warnings"]) + 1
+    for line in report["warnings_summary"]:
+        assert f"fit-smpl: warning: {line}" in proc.stderr, proc.stderr[-2000:]
     assert (out / "overlay.png").stat().st_size > 1000
 
 

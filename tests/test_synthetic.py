@@ -7,6 +7,9 @@ The module fixture builds one subject per pose (about a second each).
 
 from __future__ import annotations
 
+import json
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -20,6 +23,9 @@ from humanvdm_core.body.model import COCO17_NAMES  # noqa: E402
 from humanvdm_core.errors import ConfigError  # noqa: E402
 from humanvdm_core.io import read_npz  # noqa: E402
 from humanvdm_core.synthetic import (  # noqa: E402
+    GARMENT_EXAMPLES,
+    GARMENT_POSES,
+    GARMENT_TEXTURE,
     HAIR_COLORS,
     POSES,
     SKIN_TONES,
@@ -297,3 +303,197 @@ def test_spec_validation():
         SubjectSpec(skin_tone=(300, 0, 0))
     with pytest.raises(ConfigError, match="unknown"):
         SubjectSpec.from_dict({"colour": 1})
+
+
+# ----------------------------------------------------------------------------- garment meshes
+
+GARMENT_TEXTURE_SIZE = 128  # small: these tests look at geometry and silhouettes
+
+
+def body_only(spec: SubjectSpec) -> SubjectSpec:
+    return replace(spec, dress="none", long_hair=False)
+
+
+@pytest.fixture(scope="module")
+def garments(tmp_path_factory) -> dict:
+    """name -> (obj, truth) for two garment examples and their body-only twins ("<name>/body")."""
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("garments")
+    out = {}
+    for name in ("skirt_long_hair", "gown"):
+        for key, spec in ((name, GARMENT_EXAMPLES[name]), (f"{name}/body", body_only(GARMENT_EXAMPLES[name]))):
+            obj = make_subject(spec, root / key.replace("/", "_"), texture_size=GARMENT_TEXTURE_SIZE)
+            out[key] = (obj, read_npz(obj.parent / "truth.npz", TRUTH_SCHEMA, TRUTH_VERSION))
+    return out
+
+
+def test_garment_spec_fields():
+    assert not set(SubjectSpec().to_dict()) & {"dress", "dress_flare", "dress_color", "dress_color2",
+                                               "dress_pattern", "long_hair"}
+    assert {s.pose for s in random_specs(12, seed=5)} == set(POSES)
+    assert not any(s.has_garments for s in random_specs(12, seed=5))
+    for spec in GARMENT_EXAMPLES.values():
+        assert spec.has_garments and SubjectSpec.from_dict(spec.to_dict()) == spec
+        assert SubjectSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
+    assert set(GARMENT_POSES) == set(POSES) - {"seated"}
+    with pytest.raises(ConfigError, match="dress"):
+        SubjectSpec(dress="cape")
+    with pytest.raises(ConfigError, match="upright"):
+        SubjectSpec(dress="skirt", pose="seated")
+    with pytest.raises(ConfigError, match="dress_flare"):
+        SubjectSpec(dress="long", dress_flare=2.0)
+    with pytest.raises(ConfigError, match="dress_pattern"):
+        SubjectSpec(dress="long", dress_pattern="paisley")
+    assert SubjectSpec(long_hair=True, pose="seated").has_garments  # hair goes with any pose
+
+
+def _obj_objects(obj) -> list[str]:
+    return [line.split()[1] for line in obj.read_text().splitlines() if line.startswith("o ")]
+
+
+def test_garment_files_and_meshes(garments, tmp_path):
+    import trimesh
+
+    scans = pytest.importorskip("humanvdm_core.scans")
+    model = body_model()
+    for name in ("skirt_long_hair", "gown"):
+        obj, truth = garments[name]
+        body_obj, body_truth = garments[f"{name}/body"]
+        assert sorted(p.name for p in obj.parent.iterdir()) == sorted((*FILES, GARMENT_TEXTURE))
+        assert sorted(p.name for p in body_obj.parent.iterdir()) == sorted(FILES)
+        assert _obj_objects(obj) == ["subject", "dress", "hair"] and _obj_objects(body_obj) == ["subject"]
+        assert list(truth["garments"]) == ["dress", "hair"]
+        # the body is the body-only twin's, byte for byte: OBJ lines, albedo, parameters
+        text, body_text = obj.read_text(), body_obj.read_text()
+        assert text.startswith(body_text) and text[len(body_text):].startswith("o dress\n")
+        assert (obj.parent / "albedo.png").read_bytes() == (body_obj.parent / "albedo.png").read_bytes()
+        for key in ("pose", "shape", "transl", "joints", "coco17", "num_vertices", "num_faces"):
+            np.testing.assert_array_equal(truth[key], body_truth[key])
+        # the OBJ's garment vertices are the truth's, after the body's
+        verts = _obj_vertices(obj)
+        nb, nd = model.num_vertices, len(truth["dress_vertices"])
+        assert len(verts) == nb + nd + len(truth["hair_vertices"])
+        np.testing.assert_allclose(verts[nb:nb + nd], truth["dress_vertices"], atol=1e-5)
+        np.testing.assert_allclose(verts[nb + nd:], truth["hair_vertices"], atol=1e-5)
+        np.testing.assert_allclose(truth["bbox_min"], verts.min(0), atol=1e-5)
+        np.testing.assert_allclose(truth["bbox_max"], verts.max(0), atol=1e-5)
+        assert abs(verts[:, 1].min()) < 1e-5  # still standing on y = 0
+        for part in ("dress", "hair"):
+            mesh = trimesh.Trimesh(truth[f"{part}_vertices"], truth[f"{part}_faces"], process=False)
+            assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0, part
+        # load_scan merges both materials (two textures -> one atlas); normalisation as recorded
+        scan = scans.load_scan(obj.parent)
+        assert len(scan.vertices) >= len(verts) and scan.texture is not None
+        np.testing.assert_allclose(scans.normalization_transform(scan), truth["normalized_from_world"], atol=1e-5)
+        # the dress reaches from the waist to the knee / ankle
+        knee, ankle = (np.mean([kp(truth, f"{s}_{j}")[1] for s in ("left", "right")]) for j in ("knee", "ankle"))
+        hips = np.mean([kp(truth, f"{s}_hip")[1] for s in ("left", "right")])
+        assert hips < truth["dress_top_y"] < hips + 0.25
+        assert truth["dress_knee_half_width"] > 0.2 and truth["dress_knee_half_depth"] > 0.15
+    _, skirt = garments["skirt_long_hair"]
+    _, gown = garments["gown"]
+    knee = np.mean([kp(skirt, f"{s}_knee")[1] for s in ("left", "right")])
+    assert knee - 0.12 < skirt["dress_hem_y"] < knee
+    assert 0.0 < gown["dress_hem_y"] < 0.1
+    assert gown["dress_hem_half_width"] == pytest.approx(GARMENT_EXAMPLES["gown"].dress_flare, abs=0.04)
+    assert gown["hair_bottom_y"] < kp(gown, "left_shoulder")[1] - 0.1  # down to the shoulder blades
+    # deterministic
+    again = make_subject(GARMENT_EXAMPLES["gown"], tmp_path / "again", texture_size=GARMENT_TEXTURE_SIZE)
+    for name in (*FILES, GARMENT_TEXTURE):
+        assert (garments["gown"][0].parent / name).read_bytes() == (again.parent / name).read_bytes(), name
+
+
+def _section_points(vertices: np.ndarray, faces: np.ndarray, y: float) -> np.ndarray:
+    """Where a mesh's edges cross the horizontal plane at height ``y``."""
+    tri = vertices.astype(np.float64)[faces]
+    out = []
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        a, b = tri[:, i], tri[:, j]
+        da, db = a[:, 1] - y, b[:, 1] - y
+        m = da * db < 0
+        out.append(a[m] + (da[m] / (da[m] - db[m]))[:, None] * (b[m] - a[m]))
+    return np.concatenate(out)
+
+
+def _render(obj, azimuths, size: int = 384):
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    cams = orbit_cameras(len(azimuths), size, elevation_deg=0.0, radius=framing_radius(),
+                         azimuths_deg=np.asarray(azimuths, dtype=float))
+    return cams, render_views(normalize_scan(load_scan(obj)), cams, (1.0, 1.0, 1.0)).rgba
+
+
+def _project(cams, i: int, truth, points: np.ndarray) -> np.ndarray:
+    """(N, 2) pixel (u, v) of world points, through the subject's normalisation and camera ``i``."""
+    N = truth["normalized_from_world"].astype(np.float64)
+    p = points @ N[:3, :3].T + N[:3, 3]
+    c = p @ cams.w2c[i][:3, :3].T + cams.w2c[i][:3, 3]
+    uv = c @ cams.K[i].T
+    return uv[:, :2] / uv[:, 2:]
+
+
+def _silhouette_span(alpha: np.ndarray, row: int) -> tuple[int, int]:
+    cols = np.flatnonzero(alpha[row] > 0.5)
+    return int(cols.min()), int(cols.max()) + 1
+
+
+@pytest.mark.parametrize("name", ["skirt_long_hair", "gown"])
+def test_dress_widens_the_silhouette_at_knee_height(garments, name):
+    model = body_model()
+    widths = {}
+    for key in (name, f"{name}/body"):
+        obj, truth = garments[key]
+        cams, rgba = _render(obj, [0.0, 90.0])
+        body_v = _obj_vertices(obj)[:model.num_vertices]
+        knee_y = float(np.mean([kp(truth, f"{s}_knee")[1] for s in ("left", "right")]))
+        legs = _section_points(body_v, model.faces.numpy(), knee_y)
+        for i, view in enumerate(("front", "side")):
+            row = int(np.floor(_project(cams, i, truth, legs)[:, 1].mean()))
+            lo, hi = _silhouette_span(rgba[i, ..., 3], row)
+            widths[key, view] = hi - lo
+            uv = _project(cams, i, truth, legs)
+            widths[key, view, "legs"] = uv[:, 0].max() - uv[:, 0].min()
+            if key == name:
+                dress = _project(cams, i, truth, _section_points(truth["dress_vertices"], truth["dress_faces"], knee_y))
+                widths[key, view, "dress"] = dress[:, 0].max() - dress[:, 0].min()
+                # truth's half-width / half-depth at the knee describe that cross-section
+                extent = truth["dress_knee_half_width" if view == "front" else "dress_knee_half_depth"] * 2
+                scale = abs(truth["normalized_from_world"][0, 0]) * cams.K[i][0, 0] / cams.radius[i]
+                assert widths[key, view, "dress"] == pytest.approx(extent * scale, rel=0.1)
+    for view in ("front", "side"):
+        dressed, bare = widths[name, view], widths[f"{name}/body", view]
+        assert bare == pytest.approx(widths[f"{name}/body", view, "legs"], abs=4)  # the legs
+        assert dressed == pytest.approx(widths[name, view, "dress"], abs=4)  # the dress
+        assert dressed > 1.25 * bare  # the legs are inside
+        # wider by about the dress's width less the legs'
+        assert dressed - bare == pytest.approx(widths[name, view, "dress"] - widths[f"{name}/body", view, "legs"],
+                                               abs=6)
+
+
+def test_long_hair_hangs_below_the_neck_at_the_back(garments):
+    obj, truth = garments["skirt_long_hair"]
+    bare_obj, bare_truth = garments["skirt_long_hair/body"]
+    spec = GARMENT_EXAMPLES["skirt_long_hair"]
+    J = {n: truth["joints"][i] for i, n in enumerate(truth["joint_names"])}
+    neck_y, bottom = float(J["neck01"][1]), float(truth["hair_bottom_y"])
+    assert bottom < neck_y - 0.12
+    ys = np.linspace(neck_y - 0.02, bottom + 0.02, 6)
+    hair_rgb = np.asarray(spec.hair_color, float) / 255.0
+    backs = {}
+    for key, t in (("hair", truth), ("bare", bare_truth)):
+        cams, rgba = _render(obj if key == "hair" else bare_obj, [180.0, 90.0])
+        # back view: the spine's line below the neck is hair-coloured with hair, shirt-coloured without
+        points = np.stack([np.zeros_like(ys), ys, np.full_like(ys, float(truth["hair_back_z"]))], axis=1)
+        uv = np.floor(_project(cams, 0, t, points)).astype(int)
+        colours = rgba[0, uv[:, 1], uv[:, 0], :3]
+        near_hair = np.linalg.norm(colours - hair_rgb, axis=1) < 0.15
+        assert near_hair.all() if key == "hair" else not near_hair.any(), (key, colours)
+        # side view (from the person's left, image right = the back): the outline reaches further back
+        backs[key] = []
+        for y in ys:
+            row = int(np.floor(_project(cams, 1, t, np.array([[0.0, y, 0.0]]))[0, 1]))
+            backs[key].append(_silhouette_span(rgba[1, ..., 3], row)[1] - _project(cams, 1, t, np.zeros((1, 3)))[0, 0])
+    scale = abs(truth["normalized_from_world"][0, 0]) * cams.K[1][0, 0] / cams.radius[1]  # px per metre (about)
+    assert np.all(np.asarray(backs["hair"]) > np.asarray(backs["bare"]) + 0.01 * scale)

@@ -6,31 +6,48 @@ Contract:
   :func:`humanvdm_core.body.load_body_model`, re-exported here),
   the frames' cameras (:class:`~humanvdm_core.cameras.Cameras`) and one :class:`FrameObservation`
   per frame used (COCO-17 keypoints in pixels with confidences from
-  :func:`humanvdm_core.perception.detect_person`, and the person mask). :func:`observe_frames`
-  builds them from RGBA frames.
+  :func:`humanvdm_core.perception.detect_person`, the person mask, and optionally the detector's
+  3D keypoints ``world_keypoints`` in the frame's camera axes). :func:`observe_frames` builds them
+  from RGBA frames.
 - The person is static and the cameras move: ONE set of body parameters (pose, shape, global
   orientation, translation, scale) explains every frame. A single photo is the same problem with one
   camera. With ``FitOptions.refine_per_frame`` each frame also gets a small pose correction on top of
   the shared pose (for generated orbits whose person drifts); the shared pose stays the result.
-- Objective (Adam, two phases): phase 1 fits global orientation, translation and scale to the torso
-  keypoints (shoulders, hips); phase 2 adds the pose of the main limb/spine joints
-  (:data:`FIT_JOINTS`; the others keep the model's zero pose) and the shape. Terms, each
-  dimensionless and multiplied by its weight in :class:`FitOptions`:
+- Objective (Adam, three phases): phase 1 fits global orientation, translation and scale to the
+  torso keypoints (shoulders, hips) and the torso's 3D bones; phase 1b (only with 3D keypoints) sets
+  the pose of the main limb/spine joints (:data:`FIT_JOINTS`; the others keep the model's zero pose)
+  from the 3D bone directions alone, so each limb starts on the right side of the depth ambiguity a
+  2D keypoint leaves (a thigh towards or away from the camera foreshortens the same); phase 2 fits
+  everything, the shape too. Terms, each dimensionless and multiplied by its weight in
+  :class:`FitOptions`:
 
   * keypoints: confidence-weighted robust (Cauchy, scale ``KEYPOINT_SIGMA`` of the image height)
     distance between the model's projected ``coco17`` and the detections;
-  * silhouette: projected vertices (a fixed subsample) must fall inside the mask (the mask's outside
-    distance transform sampled bilinearly at them) and the mask's contour must be covered (each
-    contour point's distance to the nearest projected vertex); both in units of
+  * bone directions (``bone_direction_weight``): for the bones of :data:`BONES` (upper arms,
+    forearms, thighs, shins, shoulder and hip lines, spine, neck) the model's 3D bone turned into
+    each frame's camera against the same bone of the detector's ``world_keypoints``: mean of
+    (1 - cos) weighted by the lower confidence of the bone's joints. Only directions count (the
+    detector's 3D scale and origin do not matter). This is what tells a single photo's limb depth:
+    a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body;
+  * silhouette, one-sided by default: projected vertices (a fixed subsample) must fall inside the
+    mask (the mask's outside distance transform sampled bilinearly at them; ``silhouette_weight``).
+    The other side, the mask's contour covered by the body (each contour point's distance to the
+    nearest projected vertex; ``silhouette_cover_weight``), is off by default: loose clothing is in
+    the mask but is not body, and covering it widens the body. Both in units of
     ``SILHOUETTE_SIGMA`` of the image size;
-  * priors: squared axis-angle of the fitted joints (stronger with fewer than five views, see
-    ``FitOptions.single_view_pose_prior_weight``); squared deviation of the shape from the
-    backend's default; the scale from its initial estimate (only matters for one camera).
+  * priors: squared axis-angle of the fitted joints (stronger with fewer than five views:
+    ``FitOptions.single_view_pose_prior_weight``, or the much weaker
+    ``single_view_pose_prior_weight_3d`` when every view with keypoints has 3D keypoints); squared
+    deviation of the shape from the backend's default; the scale from its initial estimate (only
+    matters for one camera).
 
 - Left/right confusion: a keypoint detector often swaps the person's left and right on back and
   side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
   that better agrees with the current 3D estimate is used; it is decided after phase 1 and again
-  during phase 2 (:data:`SWAP_GROUPS`).
+  during phase 2 (:data:`SWAP_GROUPS`). The 2D keypoints follow the assignment nearer the model's
+  projection; the 3D keypoints are decided on their own, by which assignment's bones point more like
+  the model's (in a side view the two hips project onto each other and the 2D decision is a coin
+  toss, while the 3D hip line still tells left from right).
 - Initialisation: from the key frame (the one whose camera azimuth is nearest 0, the input view):
   the body faces that camera; its translation puts the torso centre on the ray through the detected
   torso centre at the camera's distance to the orbit centre; its scale matches the detected torso
@@ -78,11 +95,22 @@ SWAP_GROUPS: dict[str, tuple[tuple[int, int], ...]] = {
     "legs": ((11, 12), (13, 14), (15, 16)),
 }
 TORSO = (5, 6, 11, 12)  # COCO shoulders and hips
+# Bones of the bone-direction term, each (start, end) with an end a COCO-17 index or a tuple of indices
+# (their mean): upper arms, forearms, thighs, shins, the shoulder and hip lines (right -> left), the
+# spine (hip centre -> shoulder centre) and the neck (shoulder centre -> nose).
+BONES: tuple[tuple[int | tuple[int, ...], int | tuple[int, ...]], ...] = (
+    (5, 7), (7, 9), (6, 8), (8, 10),
+    (11, 13), (13, 15), (12, 14), (14, 16),
+    (6, 5), (12, 11), ((11, 12), (5, 6)), ((5, 6), 0),
+)
+TORSO_BONES = (8, 9, 10)  # shoulder line, hip line, spine: fitted with the global orientation in phase 1
 KEYPOINT_SIGMA = 0.02  # Cauchy scale of the keypoint residual, fraction of the image height
 SILHOUETTE_SIGMA = 0.01  # silhouette distances are divided by this (fraction of the image size)
 SILHOUETTE_SIZE = 160  # masks are compared at this resolution
 CONTOUR_POINTS = 256  # contour samples per frame
 MIN_KEYPOINT_CONFIDENCE = 0.3  # keypoints below this confidence are ignored
+BONE_DIRECTION_WEIGHT = 2.0  # default FitOptions.bone_direction_weight
+SINGLE_VIEW_PRIOR_3D = 0.1  # default FitOptions.single_view_pose_prior_weight_3d
 
 
 @dataclass
@@ -91,11 +119,19 @@ class FitOptions:
 
     iterations: int = 250  # phase-2 Adam steps (phase 1 takes a third of this, at least 30)
     keypoint_weight: float = 1.0
+    # one-sided silhouette: the body's projected vertices must lie inside the mask
     silhouette_weight: float = 0.3
+    # the other side: the mask's contour must be covered by the body. Off by default: clothing (a gown, a
+    # coat, long hair) is in the mask but is not body, and covering it stretches the body
+    silhouette_cover_weight: float = 0.0
+    # 3D bone directions against the detector's world landmarks (FrameObservation.world_keypoints)
+    bone_direction_weight: float = BONE_DIRECTION_WEIGHT
     pose_prior_weight: float = 0.05
     # with few views the pose prior grows: max(pose_prior_weight, this / views_with_keypoints**2), so a
-    # single photo (depth of the limbs unobservable) stays near the rest pose
+    # single photo without 3D landmarks (depth of the limbs unobservable) stays near the rest pose ..
     single_view_pose_prior_weight: float = 1.0
+    # .. and this replaces it when the views have 3D landmarks (the bone-direction term observes the depth)
+    single_view_pose_prior_weight_3d: float = SINGLE_VIEW_PRIOR_3D
     shape_prior_weight: float = 0.05
     scale_prior_weight: float = 1.0
     refine_per_frame: bool = False
@@ -103,33 +139,42 @@ class FitOptions:
     refine_prior_weight: float = 1.0
     silhouette_vertices: int = 1500
     seed: int = 0
+    # the key frame shows the person's back (a photo from behind): start facing away from its camera
+    facing_away: bool = False
 
     def check(self) -> None:
         if self.iterations < 1 or self.refine_iterations < 0:
             raise ConfigError("iterations must be >= 1 and refine_iterations >= 0")
-        for name in ("keypoint_weight", "silhouette_weight", "pose_prior_weight", "single_view_pose_prior_weight",
-                     "shape_prior_weight",
-                     "scale_prior_weight", "refine_prior_weight"):
+        for name in ("keypoint_weight", "silhouette_weight", "silhouette_cover_weight", "bone_direction_weight",
+                     "pose_prior_weight", "single_view_pose_prior_weight", "single_view_pose_prior_weight_3d",
+                     "shape_prior_weight", "scale_prior_weight", "refine_prior_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.keypoint_weight == 0 and self.silhouette_weight == 0:
+        if self.keypoint_weight == 0 and self.silhouette_weight == 0 and self.silhouette_cover_weight == 0:
             raise ConfigError("keypoint_weight and silhouette_weight cannot both be 0")
 
 
 @dataclass
 class FrameObservation:
     """What one frame tells the fit. ``keypoints`` (17, 2) pixels, ``confidences`` (17,) (all 0 when
-    only the silhouette is known), ``mask`` (H, W) float in [0, 1]."""
+    only the silhouette is known), ``mask`` (H, W) float in [0, 1]; ``world_keypoints`` (17, 3) the
+    detector's 3D joints in this frame's camera axes (x right, y down, z away from the camera; any
+    origin and scale: only directions are used), with the same ``confidences``, or None."""
 
     index: int  # frame index in the frame set
     keypoints: np.ndarray
     confidences: np.ndarray
     mask: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    world_keypoints: np.ndarray | None = None
 
     @property
     def has_keypoints(self) -> bool:
         return bool((self.confidences >= MIN_KEYPOINT_CONFIDENCE).sum() >= 4)
+
+    @property
+    def has_world_keypoints(self) -> bool:
+        return self.has_keypoints and self.world_keypoints is not None
 
 
 @dataclass
@@ -181,9 +226,10 @@ def observe_frames(
             else:
                 failed[i] = str(exc)
             continue
+        world = None if det.world_keypoints is None else det.world_keypoints.astype(np.float32)
         observations.append(FrameObservation(i, det.keypoints.astype(np.float32),
                                              det.confidences.astype(np.float32), det.mask.astype(np.float32),
-                                             list(det.warnings)))
+                                             list(det.warnings), world))
     return observations, failed
 
 
@@ -200,13 +246,25 @@ def project(points: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> tuple[t
     return px, cam[..., 2]
 
 
-def _swap_pairs(keypoints: np.ndarray, confidences: np.ndarray, groups: Sequence[bool]):
-    kp, cf = keypoints.copy(), confidences.copy()
+def _swap_pairs(groups: Sequence[bool], *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Copies of per-keypoint ``arrays`` (17, ...) with the left/right pairs of the flagged groups exchanged."""
+    out = tuple(a.copy() for a in arrays)
     for flag, pairs in zip(groups, SWAP_GROUPS.values(), strict=True):
         if flag:
             for a, b in pairs:
-                kp[[a, b]], cf[[a, b]] = kp[[b, a]], cf[[b, a]]
-    return kp, cf
+                for x in out:
+                    x[[a, b]] = x[[b, a]]
+    return out
+
+
+def _bone_matrices() -> tuple[np.ndarray, np.ndarray]:
+    """(B, 17) averaging matrices of the bones' start and end points (:data:`BONES`)."""
+    start, end = np.zeros((len(BONES), 17)), np.zeros((len(BONES), 17))
+    for k, (a, b) in enumerate(BONES):
+        for m, ends in ((start, a), (end, b)):
+            ids = (ends,) if isinstance(ends, int) else ends
+            m[k, list(ids)] = 1.0 / len(ids)
+    return start, end
 
 
 def _silhouette_data(mask: np.ndarray, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -256,27 +314,60 @@ class _Problem:
         self.raw_kp = np.stack([o.keypoints for o in observations]).astype(np.float32)
         self.raw_conf = np.stack([np.where(o.confidences >= MIN_KEYPOINT_CONFIDENCE, o.confidences, 0.0)
                                   for o in observations]).astype(np.float32)
+        # 3D landmarks (camera axes) and their confidences; 0 for frames without them
+        self.raw_world = np.stack([o.world_keypoints if o.world_keypoints is not None else np.zeros((17, 3))
+                                   for o in observations]).astype(np.float32)
+        self.raw_world_conf = self.raw_conf * np.array([o.world_keypoints is not None for o in observations],
+                                                       np.float32)[:, None]
+        start, end = _bone_matrices()
+        self.bone_start = torch.as_tensor(start, dtype=dt)
+        self.bone_end = torch.as_tensor(end, dtype=dt)
         self.swapped = np.zeros((len(observations), len(SWAP_GROUPS)), dtype=bool)
+        self.swapped_3d = self.swapped.copy()
         self.set_swaps(self.swapped)
         names = set(model.pose_joint_names)
         self.fit_joint_ids = torch.as_tensor([model.pose_index(n) for n in FIT_JOINTS if n in names],
                                              dtype=torch.int64)
 
-    def set_swaps(self, swapped: np.ndarray) -> None:
+    def set_swaps(self, swapped: np.ndarray, swapped_3d: np.ndarray | None = None) -> None:
+        """Use the detections with the flagged groups' left/right exchanged: ``swapped`` (F, G) for the
+        2D keypoints, ``swapped_3d`` (default: the same) for the 3D landmarks."""
         self.swapped = swapped.copy()
-        kps, cfs = zip(*[_swap_pairs(k, c, s) for k, c, s in zip(self.raw_kp, self.raw_conf, swapped, strict=True)],
+        self.swapped_3d = (swapped if swapped_3d is None else swapped_3d).copy()
+        kps, cfs = zip(*[_swap_pairs(s, k, c) for k, c, s in zip(self.raw_kp, self.raw_conf, swapped, strict=True)],
                        strict=True)
-        self.kp = torch.as_tensor(np.stack(kps), dtype=self.model.dtype)
-        self.conf = torch.as_tensor(np.stack(cfs), dtype=self.model.dtype)
+        dt = self.model.dtype
+        self.kp = torch.as_tensor(np.stack(kps), dtype=dt)
+        self.conf = torch.as_tensor(np.stack(cfs), dtype=dt)
+        dirs, confs = zip(*[self._observed_bones(*_swap_pairs(s, w, c)) for w, c, s in zip(
+            self.raw_world, self.raw_world_conf, self.swapped_3d, strict=True)], strict=True)
+        self.bone_dir = torch.as_tensor(np.stack(dirs), dtype=dt)  # (F, B, 3) unit
+        self.bone_conf = torch.as_tensor(np.stack(confs), dtype=dt)  # (F, B)
+
+    def _observed_bones(self, world: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unit bone directions (B, 3) of 3D landmarks (17, 3) and their weights (B,): the confidence
+        of the least confident joint involved."""
+        start, end = self.bone_start.numpy().astype(np.float64), self.bone_end.numpy().astype(np.float64)
+        d = end @ world - start @ world
+        d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-6)
+        involved = (start + end) > 0
+        return d, np.array([float(conf[m].min()) for m in involved])
 
     def decide_swaps(self, coco17: torch.Tensor) -> int:
-        """Per frame and group, keep the L/R assignment nearer the model's projection; returns how
-        many decisions changed."""
+        """Per frame and group, keep the L/R assignment nearer the model: for the 2D keypoints the one
+        nearer its projection, for the 3D landmarks (decided on their own: where the keypoints of a
+        side view overlap, the 2D decision is a coin toss but the 3D one is not) the one whose bones
+        point more like the model's. Returns how many 2D decisions changed."""
         with torch.no_grad():
             proj, _ = project(coco17, self.w2c, self.K)
+            model_cam = (coco17 @ self.w2c[:, :3, :3].transpose(1, 2)).numpy().astype(np.float64)  # (F, 17, 3)
         proj = proj.numpy()
         new = self.swapped.copy()
+        new_3d = self.swapped_3d.copy()
+        start, end = self.bone_start.numpy().astype(np.float64), self.bone_end.numpy().astype(np.float64)
         for f in range(len(self.obs)):
+            model_dir = end @ model_cam[f] - start @ model_cam[f]
+            model_dir /= np.maximum(np.linalg.norm(model_dir, axis=-1, keepdims=True), 1e-6)
             for g, pairs in enumerate(SWAP_GROUPS.values()):
                 cost = [0.0, 0.0]
                 for a, b in pairs:
@@ -286,8 +377,17 @@ class _Problem:
                     cost[0] += ca * np.linalg.norm(ka - pa) + cb * np.linalg.norm(kb - pb)
                     cost[1] += ca * np.linalg.norm(ka - pb) + cb * np.linalg.norm(kb - pa)
                 new[f, g] = cost[1] < cost[0]
+                if self.raw_world_conf[f].any():
+                    only = np.arange(len(SWAP_GROUPS)) == g
+                    cost3 = []
+                    for flags in (np.zeros_like(only), only):
+                        d, c = self._observed_bones(*_swap_pairs(flags, self.raw_world[f], self.raw_world_conf[f]))
+                        cost3.append(float((c * (1.0 - (d * model_dir).sum(-1))).sum()))
+                    new_3d[f, g] = cost3[1] < cost3[0]
+                else:
+                    new_3d[f, g] = new[f, g]
         changed = int((new != self.swapped).sum())
-        self.set_swaps(new)
+        self.set_swaps(new, new_3d)
         return changed
 
     # ----- loss terms
@@ -301,7 +401,24 @@ class _Problem:
             return coco17.sum() * 0.0
         return (conf * _cauchy(r2, KEYPOINT_SIGMA)).sum() / total
 
-    def silhouette_term(self, vertices: torch.Tensor) -> torch.Tensor:
+    def bone_direction_term(self, coco17: torch.Tensor, bones: Sequence[int] | None = None) -> torch.Tensor:
+        """Confidence-weighted mean of (1 - cos) between the model's bones in each camera and the
+        detector's 3D bones (:data:`BONES`, or the ``bones`` among them); 0 without 3D landmarks."""
+        sel = slice(None) if bones is None else list(bones)
+        conf = self.bone_conf[:, sel]
+        total = conf.sum()
+        if float(total) <= 0:
+            return coco17.sum() * 0.0
+        if coco17.dim() == 2:
+            coco17 = coco17[None].expand(self.w2c.shape[0], -1, -1)
+        cam = coco17 @ self.w2c[:, :3, :3].transpose(1, 2)  # directions only: no translation
+        d = self.bone_end[sel] @ cam - self.bone_start[sel] @ cam  # (F, B, 3)
+        cos = (d * self.bone_dir[:, sel]).sum(-1) / d.norm(dim=-1).clamp(min=1e-6)
+        return (conf * (1.0 - cos)).sum() / total
+
+    def silhouette_terms(self, vertices: torch.Tensor, cover: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """The one-sided term (vertices inside the mask) and, with ``cover``, the contour-coverage term
+        (else 0)."""
         v = vertices[..., self.sil_vertices, :]
         px, _ = project(v, self.w2c, self.K)
         uv = px / self.size  # (F, n, 2) in [0, 1]
@@ -309,11 +426,23 @@ class _Problem:
         outside = torch.nn.functional.grid_sample(self.dt, grid, mode="bilinear", padding_mode="border",
                                                   align_corners=False)[:, 0, :, 0]  # (F, n)
         inside_term = outside.mean() / SILHOUETTE_SIGMA
+        if not cover:
+            return inside_term, inside_term * 0.0
         with torch.no_grad():  # nearest projected vertex of each contour point (gradient as min's)
             nearest = torch.cdist(self.contours, uv.detach()).argmin(-1)  # (F, C)
         picked = torch.gather(uv, uv.dim() - 2, nearest[..., None].expand(-1, -1, 2))
         cover_term = ((picked - self.contours) ** 2).sum(-1).add(1e-12).sqrt().mean() / SILHOUETTE_SIGMA
-        return inside_term + cover_term
+        return inside_term, cover_term
+
+    def silhouette_loss(self, vertices: torch.Tensor, factor: float = 1.0) -> torch.Tensor:
+        """``silhouette_weight`` x inside + ``silhouette_cover_weight`` x cover, times ``factor``."""
+        o = self.options
+        inside, cover = self.silhouette_terms(vertices, o.silhouette_cover_weight > 0)
+        return factor * (o.silhouette_weight * inside + o.silhouette_cover_weight * cover)
+
+    @property
+    def uses_silhouette(self) -> bool:
+        return self.options.silhouette_weight > 0 or self.options.silhouette_cover_weight > 0
 
 
 def _initial_params(problem: _Problem, key: int) -> BodyParams:
@@ -321,7 +450,7 @@ def _initial_params(problem: _Problem, key: int) -> BodyParams:
     model = problem.model
     params = model.zero_params(1)
     cams = problem.cams
-    az = math.radians(float(cams.azimuth_deg[key]))
+    az = math.radians(float(cams.azimuth_deg[key]) + (180.0 if problem.options.facing_away else 0.0))
     params.global_orient = torch.tensor([[0.0, az, 0.0]], dtype=model.dtype)
     with torch.no_grad():
         out = model(params)
@@ -418,13 +547,39 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
         opt.zero_grad()
         out = model(make_params(joint_rot))
         loss = options.keypoint_weight * problem.keypoint_term(out.coco17[0], TORSO) + scale_prior()
-        if options.silhouette_weight > 0:
-            loss = loss + 0.3 * options.silhouette_weight * problem.silhouette_term(out.vertices[0])
+        if options.bone_direction_weight > 0:
+            loss = loss + options.bone_direction_weight * problem.bone_direction_term(out.coco17[0], TORSO_BONES)
+        if problem.uses_silhouette:
+            loss = loss + problem.silhouette_loss(out.vertices[0], 0.3)
         loss.backward()
         opt.step()
         history.append(float(loss.detach()))
     changed = problem.decide_swaps(out.coco17[0].detach())
     lg.debug("phase 1: loss %.4f, %d left/right decisions changed", history[-1], changed)
+
+    n_views = sum(o.has_keypoints for o in observations)
+    depth_seen = options.bone_direction_weight > 0 and all(o.has_world_keypoints for o in observations
+                                                           if o.has_keypoints)
+    few_views = options.single_view_pose_prior_weight_3d if depth_seen else options.single_view_pose_prior_weight
+    pose_prior = max(options.pose_prior_weight, few_views / n_views ** 2)
+    lg.debug("pose prior %.3g (%d view(s) with keypoints, 3D landmarks: %s)", pose_prior, n_views, depth_seen)
+
+    # phase 1b: the limbs' rotations from the 3D bone directions alone. The 2D keypoints cannot tell a
+    # thigh pointing at the camera from one pointing away (both foreshorten the same); started from the
+    # rest pose, phase 2 would keep whichever side it first slid to
+    if options.bone_direction_weight > 0 and float(problem.bone_conf.sum()) > 0:
+        n1b = max(20, options.iterations // 5)
+        opt = torch.optim.Adam([joint_rot], lr=0.05)
+        for step in range(n1b):
+            _cosine_lr(opt, [0.05], step, n1b)
+            opt.zero_grad()
+            out = model(make_params(joint_rot))
+            loss = (options.bone_direction_weight * problem.bone_direction_term(out.coco17[0])
+                    + pose_prior * joint_rot.pow(2).sum(-1).mean())
+            loss.backward()
+            opt.step()
+            history.append(float(loss.detach()))
+        lg.debug("phase 1b: bone-direction loss %.4f", history[-1])
 
     # phase 2: pose and shape too
     n2 = options.iterations
@@ -432,16 +587,16 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
     base_lr = [0.01, 0.03, 0.05]
     opt = torch.optim.Adam([{"params": g, "lr": lr} for g, lr in zip(groups, base_lr, strict=True)])
     decide_at = {n2 // 4, n2 // 2}
-    n_views = sum(o.has_keypoints for o in observations)
-    pose_prior = max(options.pose_prior_weight, options.single_view_pose_prior_weight / n_views ** 2)
     for step in range(n2):
         _cosine_lr(opt, base_lr, step, n2)
         opt.zero_grad()
         params = make_params(joint_rot)
         out = model(params)
         loss = options.keypoint_weight * problem.keypoint_term(out.coco17[0])
-        if options.silhouette_weight > 0:
-            loss = loss + options.silhouette_weight * problem.silhouette_term(out.vertices[0])
+        if options.bone_direction_weight > 0:
+            loss = loss + options.bone_direction_weight * problem.bone_direction_term(out.coco17[0])
+        if problem.uses_silhouette:
+            loss = loss + problem.silhouette_loss(out.vertices[0])
         loss = loss + pose_prior * joint_rot.pow(2).sum(-1).mean()
         loss = loss + options.shape_prior_weight * (params.shape - default_shape).pow(2).sum() / 0.25
         loss = loss + scale_prior()
@@ -502,8 +657,10 @@ def _refine_per_frame(problem: _Problem, shared: BodyParams, options: FitOptions
                                transl=batch.transl, scale=batch.scale))
         # frame f sees body f: project each body into its own camera only
         loss = options.keypoint_weight * problem.keypoint_term(out.coco17)
-        if options.silhouette_weight > 0:
-            loss = loss + options.silhouette_weight * problem.silhouette_term(out.vertices)
+        if options.bone_direction_weight > 0:
+            loss = loss + options.bone_direction_weight * problem.bone_direction_term(out.coco17)
+        if problem.uses_silhouette:
+            loss = loss + problem.silhouette_loss(out.vertices)
         loss = loss + options.refine_prior_weight * delta.pow(2).sum(-1).mean()
         loss.backward()
         opt.step()

@@ -14,6 +14,13 @@ Contract of :func:`detect_person`:
   frame (its coordinates are then MediaPipe's extrapolated guess). A keypoint is *confident* when its
   confidence is >= :data:`MIN_CONFIDENCE`. "left" is the person's left (on the image's right side
   in a frontal photo).
+- ``Detection.world_keypoints`` (17, 3) float32: the same 17 joints in 3D, metres, from MediaPipe's
+  ``pose_world_landmarks`` (GHUM), origin at the midpoint of BlazePose's hips, in the camera's axes
+  (OpenCV: x right, y down, z forward away from the camera; checked on a frontal photo: the nose has
+  negative z, the person's left shoulder positive x, the ankles positive y). Their confidences are
+  ``confidences`` (the same visibilities). Only directions and relative depths are meaningful: the
+  scale is GHUM's guess and the depth of a limb can be wrong, but it is the only depth cue a single
+  photo gives (the body fit uses the bone directions, :mod:`humanvdm_core.body.fit`).
 - BlazePose's 33 landmarks map to COCO-17 one to one (:data:`BLAZEPOSE_TO_COCO17`): nose 0,
   eyes 2/5 (the eye centres, not the inner/outer corners), ears 7/8, shoulders 11/12, elbows 13/14,
   wrists 15/16, hips 23/24, knees 25/26, ankles 27/28. BlazePose's hips sit a little higher and
@@ -80,6 +87,9 @@ class Detection:
     outside: list[str] = field(default_factory=list)  # COCO joint names outside the frame
     warnings: list[str] = field(default_factory=list)  # human-readable
     names: tuple[str, ...] = COCO17_NAMES
+    # (17, 3) float32 metres, camera axes (x right, y down, z away), origin at the hip centre; None only
+    # when MediaPipe gave no 3D landmarks
+    world_keypoints: np.ndarray | None = None
 
     def confident(self) -> np.ndarray:
         """(17,) bool: which keypoints are confident."""
@@ -90,6 +100,7 @@ class Detection:
 class _Pose:
     landmarks: np.ndarray  # (33, 3) x, y in work pixels, visibility
     segmentation: np.ndarray  # (h, w) float32 in [0, 1], work resolution
+    world: np.ndarray  # (33, 3) metres, x right, y down, z away from the camera, origin at the hip centre
 
     def torso_center(self) -> np.ndarray:
         return self.landmarks[list(_TORSO), :2].mean(axis=0)
@@ -123,7 +134,11 @@ def _run_pose(pose_model, image: np.ndarray) -> _Pose | None:
     lm[:, 2] = np.clip(lm[:, 2], 0.0, 1.0)
     seg = result.segmentation_mask
     seg = np.zeros((h, w), np.float32) if seg is None else np.clip(np.asarray(seg, np.float32), 0.0, 1.0)
-    return _Pose(lm, seg)
+    if result.pose_world_landmarks is not None:
+        world = np.array([(p.x, p.y, p.z) for p in result.pose_world_landmarks.landmark], np.float32)
+    else:
+        world = np.full((len(lm), 3), np.nan, np.float32)
+    return _Pose(lm, seg, world)
 
 
 def _grey_out(image: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -263,6 +278,8 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -
     keypoints = (lm[:, :2] / np.array([ww / W, wh / H], np.float32)).astype(np.float32)
     inside = (keypoints[:, 0] >= 0) & (keypoints[:, 0] < W) & (keypoints[:, 1] >= 0) & (keypoints[:, 1] < H)
     confidences = np.where(inside, lm[:, 2], 0.0).astype(np.float32)
+    world = person.world[list(BLAZEPOSE_TO_COCO17)].astype(np.float32)
+    world = world if np.all(np.isfinite(world)) else None  # MediaPipe gave 2D landmarks only (not seen)
     outside = [n for n, ok in zip(COCO17_NAMES, inside, strict=True) if not ok]
     missing = [n for n, c in zip(COCO17_NAMES, confidences, strict=True) if c < MIN_CONFIDENCE]
     required_missing = [n for n in REQUIRED_JOINTS if n in missing]
@@ -283,4 +300,5 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -
     if low:
         warnings.append(f"not clearly visible in {photo.name}: {_describe(low)}")
     return Detection(mask=mask, keypoints=keypoints, confidences=confidences, bbox=bbox, mask_source=source,
-                     num_people=num_people, missing=missing, outside=outside, warnings=warnings)
+                     num_people=num_people, missing=missing, outside=outside, warnings=warnings,
+                     world_keypoints=world)

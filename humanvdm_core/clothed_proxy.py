@@ -1,0 +1,471 @@
+"""The clothed proxy: a closed surface of the person as photographed (clothing, hair, hats and held
+objects included), built from a body fitted to one photo and the person's mask.
+
+This is the geometry the weight-free ``diffuse`` backend renders its orbit from. The body alone cuts
+everything outside it away; the proxy keeps the person's whole silhouette in the input view and gives
+it a plausible thickness from the side (in the spirit of Photo Wake-Up, Weng et al., CVPR 2019:
+the body's depth carried out to the silhouette, front and back stitched along it).
+
+Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV axes):
+
+1. **Body depth.** The fitted body is rasterised in the input camera at ``grid`` px: its nearest
+   (``front``) and farthest (``back``) camera depth per pixel, and per pixel the body part
+   (:data:`PARTS`, from the skinning weights) of the nearest and of the farthest surface.
+2. **Domain.** The person's mask (``mask > 0.5``, dilated by one grid pixel so the proxy covers the
+   whole silhouette) is the proxy's footprint: in the input view the proxy's silhouette is the mask.
+3. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
+   elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
+   equation, body pixels fixed, free at the silhouette).
+4. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
+   of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
+   column of the mask, the smaller), in world units at the local depth; :data:`INFLATION` makes it
+   a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
+   neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body does not
+   (:data:`LOOSE_RANGE`), so a skirt, a gown, a coat or hair gets volume while a torso whose arms
+   touch it keeps the body's own thickness. ``T = 0`` on the footprint's border, so front and back
+   meet there.
+5. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T``, one vertex per grid pixel of the
+   footprint back-projected along its ray, two triangles per 2x2 block (one for a 3-pixel corner);
+   both sheets share positions along the border (border vertices are duplicated, so each sheet has
+   its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
+   back faces away (outward normals).
+6. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
+
+   * front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside,
+     so no background colour smears onto the edge;
+   * back (the unseen side): each back pixel takes, for its body part (the part of the farthest
+     body surface there; outside the body, the nearest part), the median colour of that part's
+     visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments keep their
+     colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
+     not carried over; hands keep their own colour;
+   * the head's back (part ``head``) is the hair colour sampled at the top of the head in the
+     photo, so no face appears on the back; when the photo shows the person's back
+     (``facing_away``), the unseen side is the front and the head there takes the head's own
+     median colour (no face is invented).
+
+7. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
+   :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
+
+:class:`ClothedProxy` holds the mesh, the per-vertex skinning, which sheet each vertex is on, and
+``body_fraction``: the share of the mask the body covers (low = much clothing/hair outside the body).
+:meth:`ClothedProxy.save` writes it as one NPZ (schema :data:`SCHEMA`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from humanvdm_core.cameras import Cameras
+from humanvdm_core.scans import TexturedMesh
+
+SCHEMA = "humanvdm.clothed_proxy"
+SCHEMA_VERSION = 1
+PARTS = ("torso", "head", "arms", "hands", "legs", "feet")
+INFLATION = 0.8  # half-depth / half-width of an inflated cross-section (round would be 1)
+LOOSE_WINDOW = 0.08  # the neighbourhood (fraction of the frame) whose share outside the body decides ...
+LOOSE_RANGE = (0.15, 0.45)  # ... how much to inflate: none below the first share, fully above the second
+BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside
+PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
+HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
+SKIN_INFLUENCES = 4
+GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
+
+# joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
+_PART_RULES = (
+    ("head", ("head", "eye", "jaw")),
+    ("hands", ("wrist", "finger", "metacarpal", "hand", "thumb", "index", "middle", "ring", "pinky")),
+    ("arms", ("upperarm", "lowerarm", "shoulder", "elbow")),
+    ("feet", ("foot", "toe", "ankle")),
+    ("legs", ("upperleg", "lowerleg", "pelvis.", "hip", "knee")),
+)
+
+
+@dataclass
+class ClothedProxy:
+    """A closed, textured, skinned surface of the person (see the module docstring)."""
+
+    mesh: TexturedMesh  # vertices in the orbit's world, UVs into the [front | back] texture
+    skin_joints: np.ndarray  # (V, SKIN_INFLUENCES) int32 joint indices of the body model
+    skin_weights: np.ndarray  # (V, SKIN_INFLUENCES) float32, rows sum to 1
+    front: np.ndarray  # (V,) bool: on the front sheet (seen in the input view)
+    body_fraction: float  # share of the person's mask the body covers
+
+    def vertex_colors(self) -> np.ndarray:
+        """(V, 3) float32 colours sampled from the texture at each vertex (nearest texel)."""
+        tex = self.mesh.texture
+        h, w = tex.shape[:2]
+        col = np.clip((self.mesh.uvs[:, 0] * w).astype(np.int64), 0, w - 1)
+        row = np.clip(((1.0 - self.mesh.uvs[:, 1]) * h).astype(np.int64), 0, h - 1)
+        return tex[row, col].astype(np.float32) / 255.0
+
+    def save(self, path: str | Path) -> None:
+        """One NPZ: vertices, faces, uvs, texture, vertex colours, skinning, front flags."""
+        from humanvdm_core.io import write_npz
+
+        write_npz(path, {
+            "vertices": self.mesh.vertices, "faces": self.mesh.faces, "uvs": self.mesh.uvs,
+            "texture": self.mesh.texture, "vertex_colors": self.vertex_colors(),
+            "skin_joints": self.skin_joints, "skin_weights": self.skin_weights, "front": self.front,
+            "body_fraction": np.float64(self.body_fraction),
+        }, schema=SCHEMA, version=SCHEMA_VERSION)
+
+
+def part_of_joints(joint_names: list[str]) -> np.ndarray:
+    """(J,) int index into :data:`PARTS` for each joint name (torso unless a rule matches)."""
+    out = np.zeros(len(joint_names), np.int64)
+    for j, name in enumerate(joint_names):
+        low = name.lower()
+        for part, keys in _PART_RULES:
+            if any(k in low for k in keys):
+                out[j] = PARTS.index(part)
+                break
+    return out
+
+
+def vertex_parts(skinning_weights: np.ndarray, joint_names: list[str]) -> np.ndarray:
+    """(V,) int part of each body vertex: the part with the largest summed skinning weight."""
+    joint_part = part_of_joints(joint_names)
+    per_part = np.zeros((skinning_weights.shape[0], len(PARTS)))
+    for p in range(len(PARTS)):
+        per_part[:, p] = skinning_weights[:, joint_part == p].sum(axis=1)
+    return per_part.argmax(axis=1)
+
+
+# ----------------------------------------------------------------------------- body maps
+
+def _reflected(vertices: np.ndarray, camera: Cameras) -> tuple[np.ndarray, float]:
+    """Vertices moved along their camera rays so depth order reverses: z' = 2c - z (same pixels)."""
+    w2c = camera.w2c[0]
+    cam = vertices @ w2c[:3, :3].T + w2c[:3, 3]
+    c = float(cam[:, 2].max()) + 0.1
+    z = np.maximum(cam[:, 2], 1e-4)
+    cam2 = cam * ((2.0 * c - z) / z)[:, None]
+    world = (cam2 - w2c[:3, 3]) @ w2c[:3, :3]
+    return world, c
+
+
+def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera: Cameras) -> dict[str, np.ndarray]:
+    """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage and
+    the part of the nearest and of the farthest surface (-1 where empty)."""
+    from humanvdm_core.render import render_views
+
+    code = np.repeat(((parts + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
+    near = render_views(TexturedMesh(vertices, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+    world, c = _reflected(np.asarray(vertices, np.float64), camera)
+    far = render_views(TexturedMesh(world, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+    covered = (near.depth[0] > 0) & (far.depth[0] > 0)  # (rasterisation of the bent triangles may differ)
+
+    def part_map(result) -> np.ndarray:
+        p = np.floor(result.rgba[0, ..., 0] * len(PARTS)).astype(np.int64)
+        return np.where(result.depth[0] > 0, np.clip(p, 0, len(PARTS) - 1), -1)
+
+    back = np.where(far.depth[0] > 0, 2.0 * c - far.depth[0], 0.0)
+    return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
+            "front_part": part_map(near), "back_part": part_map(far)}
+
+
+# ----------------------------------------------------------------------------- PDE helpers
+
+_CROSS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
+
+
+def _jacobi(x: np.ndarray, free: np.ndarray, weight: np.ndarray, rhs: np.ndarray | float, iterations: int) -> np.ndarray:
+    """Jacobi steps of ``x_i = (sum_j w_j x_j + rhs_i) / sum_j w_j`` over 4-neighbours, on ``free`` pixels."""
+    den = cv2.filter2D(weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
+    den = np.maximum(den, 1e-6)
+    x = x.astype(np.float32)
+    for _ in range(iterations):
+        num = cv2.filter2D(x * weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT) + rhs
+        x = np.where(free, num / den, x)
+    return x
+
+
+def _pyramid_solve(x0: np.ndarray, free: np.ndarray, weight: np.ndarray, rhs_per_px2: float,
+                   iterations: int = 60, coarsest: int = 24) -> np.ndarray:
+    """Coarse-to-fine Jacobi: the problem is restricted to halved grids down to ``coarsest`` px, solved
+    there first, and each solution seeds the next finer
+    level. ``rhs_per_px2`` is the right-hand side per squared pixel of this level (0: Laplace)."""
+    h, w = free.shape
+    if min(h, w) <= coarsest:
+        return _jacobi(x0, free, weight, rhs_per_px2, iterations * 8)
+    half = (max(1, w // 2), max(1, h // 2))
+    c_free = cv2.resize(free.astype(np.float32), half, interpolation=cv2.INTER_AREA) > 0.5
+    c_weight = cv2.resize(weight, half, interpolation=cv2.INTER_AREA)
+    c_fixed = ~c_free
+    # fixed values at the coarse level: the average of the fixed fine pixels under each coarse pixel
+    fine_fixed = (~free).astype(np.float32)
+    num = cv2.resize(x0 * fine_fixed, half, interpolation=cv2.INTER_AREA)
+    den = cv2.resize(fine_fixed, half, interpolation=cv2.INTER_AREA)
+    c_x0 = np.where(c_fixed & (den > 0), num / np.maximum(den, 1e-6), cv2.resize(x0, half, interpolation=cv2.INTER_AREA))
+    # the same function on a grid of doubled spacing: the right-hand side per squared pixel is 4 times larger
+    coarse = _pyramid_solve(c_x0.astype(np.float32), c_free, c_weight.astype(np.float32), rhs_per_px2 * 4.0,
+                            iterations, coarsest)
+    up = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    x = np.where(free, up, x0).astype(np.float32)
+    return _jacobi(x, free, weight, rhs_per_px2, iterations)
+
+
+def run_halfdepth(domain: np.ndarray) -> np.ndarray:
+    """Per pixel of ``domain``, in pixels: the round cross-section's half-depth ``sqrt(a^2 - (x - c)^2)`` of
+    the horizontal run of domain pixels it lies on (centre ``c``, half-length ``a``), and the same along
+    its column; the smaller of the two. A skirt's rows are short and its columns long (round from the
+    side, not rounded at its hem); an outstretched arm's columns are the short ones."""
+
+    def along_rows(d: np.ndarray) -> np.ndarray:
+        h, w = d.shape
+        padded = np.zeros((h, w + 2), bool)
+        padded[:, 1:-1] = d
+        diff = np.diff(padded.astype(np.int8), axis=1)
+        out = np.zeros((h, w), np.float32)
+        rows_s, starts = np.nonzero(diff == 1)
+        _, ends = np.nonzero(diff == -1)  # same row order as the starts
+        for r, x0, x1 in zip(rows_s, starts, ends, strict=True):
+            a = 0.5 * (x1 - x0)
+            x = np.arange(x0, x1) + 0.5 - 0.5 * (x0 + x1)
+            out[r, x0:x1] = np.sqrt(np.maximum(a * a - x * x, 0.0))
+        return out
+
+    d = domain.astype(bool)
+    return np.minimum(along_rows(d), along_rows(d.T).T)
+
+
+def harmonic_extension(values: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
+    """``values`` on ``known`` pixels, extended over ``domain`` by the Laplace equation (free at the
+    domain's border); pixels of the domain unreachable from ``known`` take the nearest known value."""
+    start = nearest_fill(values, known)
+    free = domain & ~known
+    return _pyramid_solve(start.astype(np.float32), free, domain.astype(np.float32), 0.0).astype(np.float64)
+
+
+def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` (H, W[, C]) with every pixel taking the value of the nearest ``known`` pixel."""
+    if not known.any():
+        return values.copy()
+    src = np.where(known, 0, 1).astype(np.uint8)
+    _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    rows, cols = np.nonzero(known)
+    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
+    by_label[labels[rows, cols]] = np.stack([rows, cols], axis=1)
+    where = by_label[labels]
+    return values[where[..., 0], where[..., 1]]
+
+
+# ----------------------------------------------------------------------------- colour
+
+def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX) -> np.ndarray:
+    """``rgb`` with the mask's silhouette band (``band_px``) and everything outside replaced by the
+    nearest pixel further inside, so edge pixels never mix in the background."""
+    person = mask > 0.5
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
+    inner = cv2.erode(person.astype(np.uint8), kernel).astype(bool)
+    if inner.sum() < 64:
+        inner = person
+    return nearest_fill(rgb, inner)
+
+
+def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
+    """(H, C): per image row, the median colour of the ``select``ed pixels within ``band`` rows of it
+    (rows with none take the nearest row that has some)."""
+    h = image.shape[0]
+    out = np.full((h, image.shape[2]), np.nan, np.float32)
+    counts = select.sum(axis=1)
+    for y in range(h):
+        y0, y1 = max(0, y - band), min(h, y + band + 1)
+        if counts[y0:y1].sum() == 0:
+            continue
+        out[y] = np.median(image[y0:y1][select[y0:y1]], axis=0)
+    have = np.nonzero(np.isfinite(out[:, 0]))[0]
+    if len(have) == 0:
+        return np.zeros_like(out)
+    nearest = have[np.clip(np.searchsorted(have, np.arange(h)), 0, len(have) - 1)]
+    before = have[np.clip(np.searchsorted(have, np.arange(h)) - 1, 0, len(have) - 1)]
+    pick = np.where(np.abs(before - np.arange(h)) < np.abs(nearest - np.arange(h)), before, nearest)
+    return out[pick]
+
+
+def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
+                        head_colour: np.ndarray | None) -> np.ndarray:
+    """The colour of the unseen side per input-view pixel (contract step 6, "back"): per body part, the
+    median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
+    garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
+    objects narrower than half the part are not carried over; hands keep their own colour, the head
+    takes ``head_colour``."""
+    size = photo.shape[0]
+    band = max(1, int(PRINT_BAND * size))
+    person = mask > 0.5
+    out = nearest_fill(photo, person).astype(np.float32)
+    for p in range(len(PARTS)):
+        want = back_part == p
+        source = person & (front_part == p)
+        if not want.any() or source.sum() < 4:
+            continue
+        if PARTS[p] == "head" and head_colour is not None:
+            out[want] = head_colour
+        elif PARTS[p] == "hands":
+            out[want] = nearest_fill(photo, source)[want]  # skin keeps its own colour
+        else:
+            per_row = row_medians(photo, source, band)
+            out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
+    if head_colour is not None:
+        hair = hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
+        out[hair & (back_part != PARTS.index("hands"))] = head_colour
+    return out
+
+
+def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:
+    """Where long hair hangs on the unseen side: the photo's pixels of about the hair's colour
+    (:data:`HAIR_DISTANCE`) connected to the top of the head, and, per column of their span, everything
+    from the top down to the lowest of them nearby (hair seen beside the neck hangs behind it too),
+    at most down to the middle of the person's height."""
+    person = mask > 0.5
+    rows = np.nonzero(person.any(axis=1))[0]
+    if len(rows) == 0:
+        return np.zeros_like(person)
+    top, bottom = int(rows.min()), int(rows.max()) + 1
+    near = person & (np.linalg.norm(photo - hair[None, None], axis=2) < HAIR_DISTANCE)
+    n, labels = cv2.connectedComponents(near.astype(np.uint8), connectivity=8)
+    head = person & (front_part == PARTS.index("head"))
+    band = np.zeros_like(person)
+    band[top:top + max(2, (bottom - top) // 30)] = True
+    seeds = np.unique(labels[near & band & cv2.dilate(head.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)])
+    region = np.isin(labels, seeds[seeds > 0])
+    if not region.any():
+        return np.zeros_like(person)
+    lowest = np.where(region.any(axis=0), region.shape[0] - 1 - np.argmax(region[::-1], axis=0), -1)
+    cols = np.nonzero(lowest >= 0)[0]
+    span = max(3, (cols.max() - cols.min()) // 3) | 1
+    lowest = cv2.dilate(lowest.astype(np.float32)[None], np.ones((1, span), np.uint8))[0]
+    lowest = np.minimum(lowest, top + 0.5 * (bottom - top))
+    lowest[: cols.min()] = -1
+    lowest[cols.max() + 1:] = -1
+    yy = np.arange(person.shape[0])[:, None]
+    return person & (yy <= lowest[None, :])
+
+
+# ----------------------------------------------------------------------------- the proxy
+
+def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
+                        joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
+                        head_colour: np.ndarray | None = None, grid: int = GRID) -> ClothedProxy:
+    """The clothed proxy of a person (see the module docstring).
+
+    ``vertices`` (V, 3) / ``faces`` / ``skinning_weights`` (V, J) / ``joint_names``: the fitted body in
+    the world; ``camera``: the input view (one camera, ``size`` x ``size``); ``rgb`` (size, size, 3) and
+    ``mask`` (size, size): the input view's photo and person mask; ``head_colour``: the colour of the
+    unseen side of the head (hair), None to use the head's own median colour."""
+    size = camera.width
+    g = max(16, min(grid, size))
+    cam_g = camera.scaled(g, g) if g != size else camera
+    parts = vertex_parts(skinning_weights, joint_names)
+    maps = body_maps(np.asarray(vertices, np.float32), np.asarray(faces, np.int32), parts, cam_g)
+
+    person_g = cv2.resize(mask.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA) > 0.5
+    domain = cv2.dilate(person_g.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    body = maps["covered"] & domain & (maps["back"] >= maps["front"])
+    if body.sum() < 8:
+        body = maps["covered"]
+    # isolated outliers where the near and the far rasterisation hit different triangles: 5x5 medians
+    for key in ("front", "back"):
+        smooth = cv2.medianBlur(np.where(body, maps[key], 0.0).astype(np.float32), 5)
+        inner = cv2.erode(body.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        maps[key] = np.where(inner & (np.abs(maps[key] - smooth) > 0.05), smooth, maps[key])
+    mid_body = 0.5 * (maps["front"] + maps["back"])
+    mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
+    t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)
+
+    fx = float(cam_g.K[0, 0, 0])
+    t_round = run_halfdepth(domain) * mid / fx * INFLATION
+    # inflate where the mask reaches beyond the body (loose clothing, hair, objects), not where it hugs it
+    window = max(3, int(LOOSE_WINDOW * g) | 1)
+    area = cv2.boxFilter(domain.astype(np.float32), -1, (window, window), normalize=False)
+    loose = cv2.boxFilter((domain & ~body).astype(np.float32), -1, (window, window), normalize=False)
+    looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
+    t_inflate = looseness * t_round
+    border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
+    half = np.where(border, 0.0, np.maximum(t_body, t_inflate))
+
+    # vertices: front sheet on every domain pixel, back sheet on interior pixels (border shared in position)
+    rows, cols = np.nonzero(domain)
+    n = len(rows)
+    index_front = np.full((g, g), -1, np.int64)
+    index_front[rows, cols] = np.arange(n)
+    index_back = np.full((g, g), -1, np.int64)
+    index_back[rows, cols] = np.arange(n, 2 * n)  # border vertices are duplicated (own texture coordinates)
+
+    K_inv = np.linalg.inv(cam_g.K[0])
+    c2w = cam_g.c2w[0]
+    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(n)], axis=1)
+    rays = pix @ K_inv.T  # camera-space points at z = 1
+
+    def lift(depth: np.ndarray) -> np.ndarray:
+        cam_pts = rays * depth[:, None]
+        return cam_pts @ c2w[:3, :3].T + c2w[:3, 3]
+
+    d_mid, d_half = mid[rows, cols], half[rows, cols]
+    verts = np.concatenate([lift(d_mid - d_half), lift(d_mid + d_half)])
+
+    # faces: two triangles per 2x2 block of domain pixels, one for a block with three
+    tris = []
+    a = index_front[:-1, :-1]
+    b = index_front[:-1, 1:]
+    c = index_front[1:, :-1]
+    d = index_front[1:, 1:]
+    for t0, t1, t2, cond in (
+        (a, c, b, (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)),
+        (b, c, d, (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)),
+        (a, c, b, (a >= 0) & (b >= 0) & (c >= 0) & (d < 0)),
+        (b, c, d, (a < 0) & (b >= 0) & (c >= 0) & (d >= 0)),
+        (a, d, b, (a >= 0) & (b >= 0) & (c < 0) & (d >= 0)),
+        (a, c, d, (a >= 0) & (b < 0) & (c >= 0) & (d >= 0)),
+    ):
+        tris.append(np.stack([t0[cond], t1[cond], t2[cond]], axis=1))
+    front_faces = np.concatenate(tris)  # wound to face the camera (normals towards -z)
+    back_faces = front_faces[:, ::-1] + n
+    faces_out = np.concatenate([front_faces, back_faces])
+
+    # colour: front = the photo (band refilled); back = the unseen side; one [front | back] texture
+    front_tex = refill_band(rgb, mask)
+    to_full = (size / g)
+    fp = cv2.resize(maps["front_part"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    bp = cv2.resize(maps["back_part"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    known = fp >= 0
+    fp = nearest_fill(fp, known).astype(np.int64) if known.any() else np.zeros_like(fp, np.int64)
+    bknown = bp >= 0
+    bp = np.where(bknown, bp, fp).astype(np.int64)
+    if head_colour is None:
+        head_pixels = (fp == PARTS.index("head")) & (mask > 0.5)
+        head_colour = np.median(front_tex[head_pixels], axis=0) if head_pixels.any() else None
+    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour)
+    texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
+    u = (cols + 0.5) * to_full / size
+    v = 1.0 - (rows + 0.5) * to_full / size
+    uvs = np.concatenate([np.stack([0.5 * u, v], 1), np.stack([0.5 + 0.5 * u, v], 1)]).astype(np.float32)
+
+    # skinning: nearest body vertex
+    skin_j, skin_w = nearest_skinning(verts, np.asarray(vertices, np.float64), skinning_weights)
+    front_flags = np.concatenate([np.ones(n, bool), np.zeros(n, bool)])
+    mesh = TexturedMesh(verts.astype(np.float32), faces_out.astype(np.int32), uvs=uvs, texture=texture)
+    body_fraction = float(body.sum() / max(1, (person_g & domain).sum()))
+    return ClothedProxy(mesh=mesh, skin_joints=skin_j, skin_weights=skin_w, front=front_flags,
+                        body_fraction=min(1.0, body_fraction))
+
+
+def nearest_skinning(points: np.ndarray, body_vertices: np.ndarray, weights: np.ndarray,
+                     influences: int = SKIN_INFLUENCES) -> tuple[np.ndarray, np.ndarray]:
+    """Skinning of ``points`` (P, 3) copied from their nearest body vertex: the top ``influences``
+    joints (P, k) int32 and their weights (P, k) float32, renormalised."""
+    import torch
+
+    p = torch.as_tensor(points, dtype=torch.float32)
+    b = torch.as_tensor(body_vertices, dtype=torch.float32)
+    nearest = torch.cat([torch.cdist(chunk, b).argmin(dim=1) for chunk in p.split(4096)]).numpy()
+    w = np.asarray(weights, np.float64)[nearest]
+    k = min(influences, w.shape[1])
+    top = np.argsort(-w, axis=1)[:, :k]
+    tw = np.take_along_axis(w, top, axis=1)
+    tw = tw / np.maximum(tw.sum(axis=1, keepdims=True), 1e-12)
+    return top.astype(np.int32), tw.astype(np.float32)
