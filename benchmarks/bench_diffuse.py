@@ -94,9 +94,9 @@ def sheet_row(photo: Path, frames: np.ndarray | None) -> np.ndarray:
             cells.append(np.full((CELL, CELL, 3), 0.5, np.float32))
         else:
             cells.append(cv2.resize(frames[i, ..., :3], (CELL, CELL), interpolation=cv2.INTER_AREA))
-    row = np.concatenate(cells, axis=1)
-    cv2.putText(row, photo.stem[:40], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0.8, 0.0, 0.0), 1, cv2.LINE_AA)
-    return row
+    row = (np.clip(np.concatenate(cells, axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
+    cv2.putText(row, photo.stem[:40], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (200, 0, 0), 1, cv2.LINE_AA)
+    return row.astype(np.float32) / 255.0
 
 
 def main() -> None:

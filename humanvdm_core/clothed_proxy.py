@@ -310,9 +310,12 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         else:
             per_row = row_medians(photo, source, band)
             out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
-    if head_colour is not None:
-        hair = hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
-        out[hair & (back_part != PARTS.index("hands"))] = head_colour
+    torso = person & (front_part == PARTS.index("torso"))
+    if head_colour is not None and torso.sum() >= 16:
+        # only where hair can be told from the clothes under it
+        if np.linalg.norm(np.median(photo[torso], axis=0) - head_colour) > HAIR_DISTANCE:
+            hair = hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
+            out[hair & (back_part != PARTS.index("hands"))] = head_colour
     return out
 
 
@@ -320,7 +323,8 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
     """Where long hair hangs on the unseen side: the photo's pixels of about the hair's colour
     (:data:`HAIR_DISTANCE`) connected to the top of the head, and, per column of their span, everything
     from the top down to the lowest of them nearby (hair seen beside the neck hangs behind it too),
-    at most down to the middle of the person's height."""
+    at most down to the middle of the person's height. Used only where the torso's clothes differ from
+    the hair's colour by more than :data:`HAIR_DISTANCE` (else hair and clothes cannot be told apart)."""
     person = mask > 0.5
     rows = np.nonzero(person.any(axis=1))[0]
     if len(rows) == 0:
