@@ -157,13 +157,19 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     near = render_views(TexturedMesh(vertices, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
     world, c = _reflected(np.asarray(vertices, np.float64), camera)
     far = render_views(TexturedMesh(world, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
-    covered = (near.depth[0] > 0) & (far.depth[0] > 0)  # (rasterisation of the bent triangles may differ)
+    w2c = camera.w2c[0]
+    z = np.asarray(vertices, np.float64) @ w2c[:3, 2] + w2c[2, 3]
+    lo, hi = float(z.min()) - 0.01, float(z.max()) + 0.01
+    back = np.where(far.depth[0] > 0, 2.0 * c - far.depth[0], 0.0)
+    # a pixel is the body's where both passes saw it at a depth the body has (a stray rasterised depth
+    # outside the body's range, or the bent triangles of the far pass missing it, is left to the extension)
+    covered = ((near.depth[0] > 0) & (far.depth[0] > 0) & (near.depth[0] >= lo) & (near.depth[0] <= hi)
+               & (back >= lo) & (back <= hi))
 
     def part_map(result) -> np.ndarray:
         p = np.floor(result.rgba[0, ..., 0] * len(PARTS)).astype(np.int64)
         return np.where(result.depth[0] > 0, np.clip(p, 0, len(PARTS) - 1), -1)
 
-    back = np.where(far.depth[0] > 0, 2.0 * c - far.depth[0], 0.0)
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far)}
 

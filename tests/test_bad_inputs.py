@@ -237,11 +237,13 @@ def test_12000_px_photo_is_downscaled_while_decoding_not_refused(batch):
 
 
 def test_two_people_keeps_the_largest_and_says_so(batch):
-    _, store, res = batch
+    photos, store, res = batch
     log = (store / "runs" / "two" / "logs" / "diffuse.log").read_text()
     assert "shows 2 people; using the largest one only" in log
-    said = [ln for ln in res.stdout.splitlines() if ln.startswith("warning two/diffuse: ")]
-    assert said and "using the largest one only" in said[0], res.stdout  # on the console ...
+    said = [ln for ln in res.stdout.splitlines() if ln.startswith("warning two/diffuse: ")
+            and "using the largest one only" in ln]
+    assert said, res.stdout  # on the console, naming the user's file (not the store's input.png) ...
+    assert said[0].startswith(f"warning two/diffuse: {photos['two.png']} shows 2 people"), said[0]
     warnings = read_lockfile(Store(store), "two")["stages"]["diffuse"]["warnings"]
     assert any("using the largest one only" in w for w in warnings)  # ... and on record
     alpha = _input_view_alpha(store, "two")

@@ -134,3 +134,39 @@ def test_skirt_width_from_the_side(tmp_path):
           got["body"].round(3))
     assert np.all(np.abs(got["clothed"] / true_w - 1.0) < 0.2)  # measured within 10 %
     assert got["body"].mean() < 0.75 * true_w.mean()
+
+
+def _photo_of(spec, root, size: int = 256):
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+    from humanvdm_core.synthetic import make_subject
+
+    mesh = normalize_scan(load_scan(make_subject(spec, root / "subject", texture_size=256)))
+    cams = orbit_cameras(1, size, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([0.0]))
+    path = root / "photo.png"
+    write_png(path, render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba[0, ..., :3])
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case, expected", [
+    ("gown", ("photo.png: the knees and ankles are hidden", "of the person's silhouette lies outside the fitted body")),
+    ("seated", ("photo.png: the person is seated or crouching",)),
+])
+def test_the_run_says_what_it_guessed(tmp_path, case, expected):
+    """A gown hides the legs and reaches far beyond the body; a seated person's seat is not in the mask:
+    each is said in a warning that names the photo."""
+    pytest.importorskip("anny")
+    pytest.importorskip("mediapipe")
+    from humanvdm_core.body_prior import build_body_proxy
+    from humanvdm_core.synthetic import GARMENT_EXAMPLES, SubjectSpec
+
+    torch.set_num_threads(1)
+    spec = GARMENT_EXAMPLES["gown"] if case == "gown" else SubjectSpec(pose="seated", seed=5)
+    proxy = build_body_proxy(_photo_of(spec, tmp_path), size=256, iterations=60)
+    for text in expected:
+        assert any(text in w for w in proxy.warnings), proxy.warnings
+    if case == "gown":
+        assert not any("seated" in w for w in proxy.warnings), proxy.warnings
