@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 
 from humanvdm_core.cameras import Cameras, orbit_cameras
-from humanvdm_core.clothed_proxy import ClothedProxy
+from humanvdm_core.clothed_proxy import ClothedProxy, nearest_fill
 from humanvdm_core.scans import TexturedMesh, framing_radius
 
 log = logging.getLogger("humanvdm.body_prior")
@@ -202,15 +202,7 @@ def fill_from_nearest(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     inner = cv2.erode(person.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     if inner.sum() >= 16:
         person = inner
-    if not person.any():
-        return rgb.copy()
-    src = np.where(person, 0, 1).astype(np.uint8)  # distance to the nearest zero pixel = person pixel
-    _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-    rows, cols = np.nonzero(person)
-    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
-    by_label[labels[rows, cols]] = np.stack([rows, cols], axis=1)
-    where = by_label[labels]
-    return rgb[where[..., 0], where[..., 1]]
+    return nearest_fill(rgb, person)
 
 
 def _smooth(values: np.ndarray, faces: np.ndarray, passes: int, update: np.ndarray | None = None) -> np.ndarray:
