@@ -28,7 +28,12 @@ $(STAMP): pyproject.toml
 	    echo "installing torch==2.13.0 (no CUDA GPU found)"; $(PY) -m pip install -q "torch==2.13.0"; \
 	  fi; \
 	fi
-	@$(PY) -m pip install -q -e ".[dev]"
+	@# gsplat (the CUDA rasterizer, extra "cuda") only where an NVIDIA GPU is present.
+	@if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then \
+	  $(PY) -m pip install -q -e ".[dev,viewer,cuda]"; \
+	else \
+	  $(PY) -m pip install -q -e ".[dev,viewer]"; \
+	fi
 	@# mediapipe's metadata pins numpy<2 and a second OpenCV; it runs fine on ours (see pyproject.toml).
 	@$(PY) -m pip install -q --no-deps "mediapipe==0.10.21"
 	@$(PY) -m humanvdm_core.doctor

@@ -2,10 +2,13 @@
 
     humanvdm run INPUT... [--jobs N] [--force STAGE] [--until STAGE] [--set stage.param=value] [--dry-run]
     humanvdm status INPUT...        per stage: would it run, and why
-    humanvdm dag                    the stages, their inputs and outputs
+    humanvdm dag [--params]         the stages, their inputs and outputs
+    humanvdm params [STAGE...]      every stage's params: default, type, choices, help (names for --set)
     humanvdm verify                 re-hash the whole store, quarantine corrupt entries
     humanvdm gc                     remove artifacts that no run references
     humanvdm show RUN|ARTIFACT_ID   a run's lockfile summary, or an artifact's files and origin
+    humanvdm view RUN|PLY           an interactive 3D viewer of the result in the browser (viser)
+    humanvdm report RUN             (re)write runs/RUN/report.html from the run's folder and lockfile
 """
 
 from __future__ import annotations
@@ -38,7 +41,10 @@ from humanvdm_core.scheduler import (
 from humanvdm_core.store import Store
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-KEY_OUTPUTS = ("splat-optimize/gaussians/point_cloud.ply", "splat-optimize/gaussians/turntable.gif",
+PARAMS_HINT = ("Param names for --set STAGE.PARAM=VALUE (e.g. splat-optimize.preset=tiny):\n"
+               "  humanvdm params [STAGE]   lists every stage's params with their defaults, choices and help.")
+KEY_OUTPUTS = ("splat-optimize/gaussians/point_cloud.ply", "splat-optimize/gaussians/point_cloud.splat",
+               "splat-optimize/gaussians/turntable.gif",
                "evaluate/report/report.html", "evaluate/report/orbit.gif", "fit-smpl/body/overlay.png")
 
 
@@ -69,29 +75,55 @@ def _add_selection(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kind", choices=None, default=None, help="force the input kind (e.g. photo, scan)")
     p.add_argument("--force", action="append", default=[], metavar="STAGE", help="rerun STAGE even if cached")
     p.add_argument("--until", metavar="STAGE", help="run STAGE and what it needs, nothing after it")
-    p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE", help="override a param; STAGE.backend=NAME chooses a backend")
+    p.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                   help="override a param; STAGE.backend=NAME chooses a backend. `humanvdm params [STAGE]` lists "
+                        "every stage's params with their defaults, choices and help")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="humanvdm", description="Single-image 3D Gaussian humans, staged and cached.")
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("run", help="run the pipeline on inputs (cached stages are reused)")
+    p = sub.add_parser("run", help="run the pipeline on inputs (cached stages are reused)",
+                       epilog=PARAMS_HINT, formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common(p)
     _add_selection(p)
     p.add_argument("-j", "--jobs", type=int, default=1, help="stage runs in parallel (default 1)")
     p.add_argument("--dry-run", action="store_true", help="say what would run, run nothing")
-    p.add_argument("--no-progress", action="store_true")
-    p = sub.add_parser("status", help="per stage: would it run, and why")
+    p.add_argument("--no-progress", action="store_true",
+                   help="plain progress lines (each stage run's start and end, and every --progress-interval "
+                        "seconds its phase, count, rate and ETA) instead of the live display, even on a terminal "
+                        "(without a terminal that is the default)")
+    p.add_argument("--progress-interval", type=float, default=None, metavar="SECONDS",
+                   help="seconds between plain progress lines (default 15, or $HUMANVDM_PROGRESS_INTERVAL)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output; only the final summary")
+    p = sub.add_parser("status", help="per stage: would it run, and why", epilog=PARAMS_HINT,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common(p)
     _add_selection(p)
-    p = sub.add_parser("dag", help="show the pipeline's stages")
+    p = sub.add_parser("dag", help="show the pipeline's stages", epilog=PARAMS_HINT,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common(p)
     p.add_argument("--dot", action="store_true", help="Graphviz output")
+    p.add_argument("--params", action="store_true", help="with each stage's params (as `humanvdm params`)")
+    p = sub.add_parser("params", help="every stage's params: defaults, choices, help (names for --set)")
+    _add_common(p)
+    p.add_argument("stages", nargs="*", metavar="STAGE", help="only these stages (default: all)")
     p = sub.add_parser("verify", help="re-hash every artifact; quarantine corrupt ones")
     _add_common(p)
     p.add_argument("--no-quarantine", action="store_true", help="only report")
     p = sub.add_parser("gc", help="remove artifacts no run references")
     _add_common(p)
+    p = sub.add_parser("view", help="look around a result in the browser (3D viewer: Gaussians, body, cameras)")
+    _add_common(p)
+    p.add_argument("what", metavar="RUN|PLY", help="a run name, a run folder, a gaussians folder, or a .ply/.splat file")
+    p.add_argument("--port", type=int, default=8080, help="local port (default 8080; the next free one if taken)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--show", default="gaussians", metavar="LAYERS",
+                   help="layers visible at the start, comma-separated, of gaussians, body, proxy, cameras, grid "
+                        "(default: gaussians; each is a toggle in the page)")
+    p = sub.add_parser("report", help="(re)write a run's report.html from its folder and lockfile")
+    _add_common(p)
+    p.add_argument("what", metavar="RUN", help="run (subject) name")
     p = sub.add_parser("show", help="a run's lockfile summary, or an artifact's files")
     _add_common(p)
     p.add_argument("what", help="run (subject) name or artifact id (prefix ok)")
@@ -155,7 +187,8 @@ def _print_status(runs) -> None:
 def cmd_run(args) -> int:
     pipe = _pipeline(args)
     store = Store(args.store)
-    sched = _scheduler(args, pipe, store, jobs=args.jobs, progress=False if args.no_progress else None)
+    mode = "quiet" if args.quiet else "plain" if args.no_progress else "auto"
+    sched = _scheduler(args, pipe, store, jobs=args.jobs, progress=mode, progress_interval=args.progress_interval)
     subjects = _subjects(args, store, pipe)
     if args.dry_run:
         _print_status(sched.status(subjects))
@@ -177,11 +210,49 @@ def cmd_run(args) -> int:
     for s in subjects:
         if s.name in done:
             base = store.root / "runs" / s.name
+            report = _write_report(store, s.name, args)
             print(f"outputs of {s.name}: {base}")
+            if report is not None:
+                print(f"  {report.relative_to(base)}   <- open this first")
             for rel in KEY_OUTPUTS:
                 if (base / rel).exists():
                     print(f"  {rel}")
+            if (base / KEY_OUTPUTS[0]).exists():
+                flag = _store_flag(args)
+                print(f"  look around it in your browser: humanvdm view {s.name}" + (f" --store {flag}" if flag else ""))
     return 0 if summary.ok else 1
+
+
+def _store_flag(args) -> str:
+    """The --store option a person must repeat in later commands ('' for the default store)."""
+    default = Path(os.environ.get("HUMANVDM_STORE", "artifacts"))
+    return "" if Path(args.store) == default else str(args.store)
+
+
+REPORTED_STAGES = ("diffuse", "fit-smpl", "splat-optimize", "evaluate")  # runs of the reconstruction pipeline
+
+
+def _write_report(store: Store, subject: str, args):
+    from humanvdm_core.report import write_run_report
+
+    if not any(s in (read_lockfile(store, subject).get("stages") or {}) for s in REPORTED_STAGES):
+        return None
+    try:
+        return write_run_report(store.root, subject, _store_flag(args) or None)
+    except Exception as e:  # the report is a courtesy: never fail a finished run for it
+        print(f"warning: could not write the report of {subject}: {type(e).__name__}: {e}", file=sys.stderr)
+        return None
+
+
+def cmd_report(args) -> int:
+    store = Store(args.store)
+    if not read_lockfile(store, args.what):
+        raise HumanVDMError(f"{args.what!r}: no run of that name in {store.root / 'runs'}")
+    path = _write_report(store, args.what, args)
+    if path is None:
+        return 1
+    print(path)
+    return 0
 
 
 def cmd_dag(args) -> int:
@@ -199,11 +270,54 @@ def cmd_dag(args) -> int:
         return 0
     for name in pipe.order():
         sd = pipe.stages[name]
+        if args.params:
+            _print_params(pipe, name)
+            continue
         ins = ", ".join(f"{k}<-{' | '.join(map(str, v))}{'?' if k in sd.optional else ''}"
                         for k, v in sd.inputs.items())
         flag = "" if sd.implemented else "  [not implemented yet]"
         print(f"{name}{flag}\n    module: {sd.module}  backend: {sd.backend}\n    in:  {ins}\n    out: {', '.join(sd.outputs)}")
     return 0
+
+
+def _print_params(pipe: Pipeline, name: str) -> None:
+    sd = pipe.stages[name]
+    print(f"{name}" + (f": {sd.help}" if sd.help else ""))
+    if sd.spec is None:
+        print("    (not implemented yet)\n")
+        return
+    backends = ", ".join(f"{b} (default)" if b == sd.backend else b for b in sd.spec.backends)
+    print(f"    backend: {backends}    --set {name}.backend=NAME")
+    for pname, p in sd.spec.params.items():
+        default = sd.params.get(pname, p.default)
+        shown = repr(default) if not isinstance(default, str) or default else "''"
+        origin = f" (pipeline.yaml; the stage's own: {p.default!r})" if pname in sd.params and sd.params[pname] != p.default else ""
+        choices = f"  choices: {', '.join(map(str, p.choices))}" if p.choices else ""
+        only = ""
+        if p.backend is not None:
+            only = f"  [backend {p.backend if isinstance(p.backend, str) else ' | '.join(p.backend)} only]"
+        print(f"    {name}.{pname} = {shown}{origin}  ({p.type.__name__}){choices}{only}")
+        print(f"        {p.help}")
+    print()
+
+
+def cmd_params(args) -> int:
+    pipe = _pipeline(args)
+    unknown = [s for s in args.stages if s not in pipe.stages]
+    if unknown:
+        raise HumanVDMError(f"unknown stage(s) {unknown}; stages: {list(pipe.stages)}")
+    print("Set any of these with --set STAGE.PARAM=VALUE (or under the stage's params: in pipeline.yaml).\n")
+    for name in pipe.order():
+        if not args.stages or name in args.stages:
+            _print_params(pipe, name)
+    return 0
+
+
+def cmd_view(args) -> int:
+    from humanvdm_core.viewer import run_viewer
+
+    show = tuple(s.strip() for s in args.show.split(",") if s.strip())
+    return run_viewer(args.what, args.store, host=args.host, port=args.port, show=show)
 
 
 def cmd_verify(args) -> int:
@@ -245,7 +359,7 @@ def cmd_show(args) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "status": cmd_status, "dag": cmd_dag, "verify": cmd_verify, "gc": cmd_gc, "show": cmd_show}
+COMMANDS = {"run": cmd_run, "status": cmd_status, "dag": cmd_dag, "params": cmd_params, "view": cmd_view, "report": cmd_report, "verify": cmd_verify, "gc": cmd_gc, "show": cmd_show}
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -234,12 +234,40 @@ def make_grid(rows: list[dict], cell: int):
             cv2.putText(gt, "no ground truth", (4, cell // 2), cv2.FONT_HERSHEY_SIMPLEX, cell / 700, (255, 255, 255), 1)
             heat = np.zeros((cell, cell, 3), np.uint8)
         gt = np.ascontiguousarray(gt)
-        label = r["label"]
-        scale = max(0.3, cell / 600)
-        cv2.putText(gt, label, (4, int(22 * scale) + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3)
-        cv2.putText(gt, label, (4, int(22 * scale) + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1)
+        _label(gt, r["label"])
         tiles.append(np.concatenate([gt, ours, heat], axis=1))
     return np.concatenate(tiles, axis=0)
+
+
+def _label(tile, text: str) -> None:
+    """``text`` in white on a dark band across the top of ``tile``, sized to the tile (readable at 256 px)."""
+    import cv2
+
+    cell = tile.shape[1]
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    scale, thick = max(0.3, cell / 330), max(1, round(cell / 128))
+    (w, h), base = cv2.getTextSize(text, font, scale, thick)
+    if w > cell - 8:  # long names shrink to fit
+        scale *= (cell - 8) / w
+        (w, h), base = cv2.getTextSize(text, font, scale, thick)
+    band = h + base + 8
+    tile[:band] = (tile[:band] * 0.35).astype(tile.dtype)
+    cv2.putText(tile, text, (4, 4 + h), font, scale, (255, 255, 255), thick, cv2.LINE_AA)
+
+
+BASIS = {
+    "generated": "fit to the generated video — not accuracy",
+    "training": "fit to the training views (rendered from the scan) — not held out",
+    "heldout": "accuracy: against the scan, at views the Gaussians were not fitted to",
+    "geometry": "accuracy: against the scan's surface",
+}
+
+
+def metric_basis(has_scan: bool) -> dict[str, str]:
+    """What each group of numbers measures: a fit to the frames the Gaussians were trained on, or accuracy."""
+    if not has_scan:
+        return {"protocol": BASIS["generated"]}
+    return {"protocol": BASIS["training"], "heldout": BASIS["heldout"], "geometry": BASIS["geometry"]}
 
 
 def _fmt(x) -> str:
@@ -301,6 +329,14 @@ def write_html(path, report: dict) -> None:
              "td:first-child{text-align:left}</style></head><body>",
              "<h1>Human-VDM evaluation</h1>",
              f"<p>{report['gaussians']['count']} Gaussians; images compared at {report['resolution']}&sup2; px.</p>"]
+    basis = report.get("basis") or {}
+    if "heldout" not in basis:
+        parts.append("<p style='background:#fff3cd;padding:.6em;border-left:4px solid #e0a800'><b>Fit to the "
+                     "generated video — not accuracy.</b> Every number here compares renders of the Gaussians with "
+                     "frames of the orbit video they were fitted to; it says how well they reproduce that video, "
+                     "not how close they are to the real person (that needs a scan run).</p>")
+    parts.append("<p>In a run folder, the run's own report (the input, how to open the 3D viewer, the backends, "
+                 "params, times, memory and versions) is <code>report.html</code> at the top of the run.</p>")
     captions = {"turntable": "the 3D Gaussian human, turning", "orbit": "the orbit video it was fitted to",
                 "fit_overlay": "the fitted body over the orbit frames"}
     media = report.get("media") or {}
@@ -309,7 +345,8 @@ def write_html(path, report: dict) -> None:
             f"<figure><img src='{html.escape(media[k])}' alt='{k}' style='max-height:360px'>"
             f"<figcaption>{captions[k]}</figcaption></figure>" for k in captions if k in media) + "</div>")
     for group, views in report["views"].items():
-        parts.append(f"<h2>{html.escape(group)} views</h2><table><tr><th>view</th>"
+        note = f" — {html.escape(basis[group])}" if group in basis else ""
+        parts.append(f"<h2>{html.escape(group)} views{note}</h2><table><tr><th>view</th>"
                      + "".join(f"<th>{k}</th>" for k in IMAGE_METRICS) + "</tr>")
         for v in [*views, {"name": "mean", "metrics": report["mean"][group]}]:
             m = v.get("metrics") or {}
@@ -319,14 +356,17 @@ def write_html(path, report: dict) -> None:
     for name, status in report["perceptual"].items():
         if status != "ok":
             parts.append(f"<p>{name.upper()}: {html.escape(status)}</p>")
-    parts.append("<h2>Geometry</h2>")
+    parts.append("<h2>Geometry" + (f" — {html.escape(basis['geometry'])}" if "geometry" in basis else "") + "</h2>")
     geo = report["geometry"]
     if isinstance(geo, dict):
         parts.append("<table>" + "".join(f"<tr><td>{html.escape(k)}</td><td>{_fmt(v)}</td></tr>"
                                          for k, v in geo.items()) + "</table>")
     else:
         parts.append(f"<p>{html.escape(str(geo))}</p>")
-    parts.append("<h2>Views</h2><p>ground truth | ours | |error| (0 to 0.5)</p><img src='grid.png' alt='view grid'>")
+    reference = "ground truth (scan)" if "heldout" in basis else "the generated frame it was fitted to (not ground truth)"
+    parts.append(f"<h2>Views</h2><p>Columns: {reference} | ours | |error| (0 to 0.5). Rows: "
+                 + ", ".join(html.escape(v["name"]) for vs in report["views"].values() for v in vs)
+                 + ".</p><img src='grid.png' alt='view grid'>")
     parts.append("<h2>Definitions</h2><ul>" + "".join(f"<li><b>{k}</b>: {html.escape(v)}</li>"
                                                       for k, v in DEFINITIONS.items()) + "</ul></body></html>\n")
     atomic_write_text(path, "\n".join(parts))
@@ -424,9 +464,12 @@ def evaluate_gaussians(gaussians: str | Path, frames_dir: str | Path, scan: str 
             log.info("geometry: p2s %.4f, s2p %.4f, chamfer %.4f (%.2f%% of height)", geometry["p2s"],
                          geometry["s2p"], geometry["chamfer"], 100 * geometry["chamfer_rel"])
 
+    from humanvdm_core.progress import report as progress
+
     perceptual = Perceptual(opts, log)
     group_views = {k: iter(v) for k, v in views.items()}
-    for r in rows:
+    for n, r in enumerate(rows, start=1):
+        progress(n, len(rows), "views", "render and score")
         rgb, alpha = render_gaussians(g, r["cam"], background)
         r["ours"], r["ours_alpha"] = rgb[0], alpha[0]
         v = next(group_views[r["group"]])
@@ -445,6 +488,7 @@ def evaluate_gaussians(gaussians: str | Path, frames_dir: str | Path, scan: str 
         "mean": {k: mean_metrics(v) for k, v in views.items()},
         "geometry": geometry,
         "skipped_heldout_views": skipped,
+        "basis": metric_basis(scan is not None),
         "definitions": DEFINITIONS,
     }
     out = Path(out)

@@ -359,17 +359,20 @@ def interpolate_frame_set(src: str | Path, dst: str | Path, opts: InterpolateOpt
         write_exr(dst / FRAMES_DIR / frame_name(index), frame,
                   attrs={**base, "frame_index": index, "keyframe": int(key), "time": float(t)})
 
+    from humanvdm_core.progress import report
+
     prev = read_exr(paths[0])
     put(0, prev, True, 0.0)
+    n_out = (len(paths) - 1) * factor + 1
     for i in range(1, len(paths)):
         cur = read_exr(paths[i])
         for k, frame in enumerate(interpolate_interval(prev, cur, opts, backend), start=1):
             put((i - 1) * factor + k, frame, False, i - 1 + k / factor)
         put(i * factor, cur, True, float(i))
+        report(i * factor + 1, n_out, "frames", f"interpolate {len(paths)} -> {n_out} frames")
         prev = cur
     upsample_cameras(cams, factor).save(dst / CAMERAS_FILE)
     dropped = sorted(d.name for d in src.iterdir() if d.is_dir() and d.name != FRAMES_DIR)
-    n_out = (len(paths) - 1) * factor + 1
     if log:
         log.info("interpolated %d -> %d frames (%dx%d, %s/%s, %s schedule)", len(paths), n_out, w, h, backend,
                  opts.method, schedule)

@@ -15,6 +15,10 @@ Independent stage runs (other subjects, parallel branches) go to a bounded pool 
 failure skips only what depends on it. Per subject, ``runs/<subject>/humanvdm.lock`` records every
 stage's key, params, input and output ids, backend, wall time, peak memory and versions, and
 ``runs/<subject>/<stage>/<output>`` links to the artifacts.
+
+While it runs, each stage process reports its own progress through ``runs/<subject>/logs/<stage>.progress``
+(the channel of :mod:`humanvdm_core.progress`, named in ``$HUMANVDM_PROGRESS``); a
+:class:`~humanvdm_core.progress.Display` shows it, per active stage run.
 """
 
 from __future__ import annotations
@@ -42,12 +46,14 @@ from humanvdm_core.errors import ConfigError, HumanVDMError
 from humanvdm_core.hashing import hash_tree
 from humanvdm_core.io import atomic_write_text
 from humanvdm_core.pipeline import Pipeline, Ref, code_fingerprint
+from humanvdm_core.progress import PROGRESS_ENV, Display
 from humanvdm_core.store import Store
 
 LOCK_NAME = "humanvdm.lock"
 _YamlLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when the wheel has it
 _YamlDumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
-VERSIONED_PACKAGES = ("numpy", "torch", "opencv-contrib-python-headless", "openimageio", "moderngl", "trimesh")
+VERSIONED_PACKAGES = ("humanvdm", "numpy", "torch", "opencv-contrib-python-headless", "openimageio", "moderngl", "trimesh",
+                      "anny", "mediapipe", "gsplat")
 
 # Stage-run states.
 CACHED, RAN, FAILED = "cached", "ran", "failed"
@@ -111,7 +117,8 @@ class Scheduler:
         force: set[str] | None = None,
         until: str | None = None,
         jobs: int = 1,
-        progress: bool | None = None,
+        progress: str | bool | None = None,
+        progress_interval: float | None = None,
     ):
         self.pipeline = pipeline
         self.store = store
@@ -119,7 +126,9 @@ class Scheduler:
         self.force = set(force or ())
         self.until = until
         self.jobs = max(1, int(jobs))
-        self.progress = progress
+        # what the run shows (humanvdm_core.progress.Display): "auto" (None), "live" (True), "plain" (False), "quiet"
+        self.progress = {None: "auto", True: "live", False: "plain"}.get(progress, progress)
+        self.progress_interval = progress_interval
         for stage in self.overrides:
             if stage not in pipeline.stages:
                 raise ConfigError(f"--set: unknown stage {stage!r}; stages: {list(pipeline.stages)}")
@@ -143,6 +152,7 @@ class Scheduler:
         self._versions: dict[str, str] | None = None
         self._lockfiles: dict[str, dict] = {}
         self._dirty: set[str] = set()
+        self._display: Display | None = None
 
     # ------------------------------------------------------------------ planning
 
@@ -289,16 +299,17 @@ class Scheduler:
         runs = self.plan(subjects)
         todo = [r for r in runs if r.state == "pending"]
         with self.store.shared_use():
-            bar = _progress(len(todo), self.progress)
+            display = Display(self.progress, total=len(todo), interval=self.progress_interval)
             try:
-                self._execute(todo, bar)
+                self._execute(todo, display)
             finally:
-                bar.close()
+                display.close()
                 with self._lock:
                     self._flush_lockfiles()
         return Summary(runs)
 
-    def _execute(self, todo: list[StageRun], bar) -> None:
+    def _execute(self, todo: list[StageRun], display) -> None:
+        self._display = display
         pending = list(todo)
         futures: dict[Future, StageRun] = {}
         with ThreadPoolExecutor(max_workers=self.jobs) as pool:
@@ -309,7 +320,7 @@ class Scheduler:
                         if bad:
                             run.state, run.reason = SKIPPED, f"upstream {bad[0].stage} {bad[0].state}"
                             pending.remove(run)
-                            self._report(run, bar)
+                            self._report(run, display)
                         elif all(d.state in (CACHED, RAN) for d in run.deps):
                             pending.remove(run)
                             futures[pool.submit(self._run_one, run)] = run
@@ -321,21 +332,18 @@ class Scheduler:
                         exc = fut.exception()
                         if exc is not None:
                             run.state, run.reason = FAILED, f"{type(exc).__name__}: {exc}"
-                        self._report(run, bar)
+                        self._report(run, display)
             except BaseException:  # Ctrl-C: stop the running stages before the pool waits for them
                 for fut in futures:
                     fut.cancel()
                 self._kill_children()
                 raise
 
-    def _report(self, run: StageRun, bar) -> None:
-        bar.update(1)
-        if run.state == CACHED:
-            return
+    def _report(self, run: StageRun, display) -> None:
         timing = f" in {run.wall_s:.1f} s" if run.state == RAN and run.wall_s is not None else ""
-        extra = f": {run.reason}" if run.reason and run.state != RAN else ""
+        extra = f": {run.reason}" if run.reason and run.state not in (RAN, CACHED) else ""
         log = f" (log: {run.log})" if run.state == FAILED and run.log else ""
-        bar.write(f"{run.label}: {run.state}{timing}{extra}{log}")
+        display.finished(id(run), run.label, run.state, f"{run.label}: {run.state}{timing}{extra}{log}")
 
     def _run_one(self, run: StageRun) -> None:
         self._resolve_inputs(run)
@@ -368,7 +376,10 @@ class Scheduler:
         log_dir = self.store.root / "runs" / run.subject.name / "logs"
         log_dir.mkdir(parents=True, exist_ok=True)
         run.log = log_dir / f"{run.stage}.log"
+        progress_file = log_dir / f"{run.stage}.progress"  # the stage's progress channel (humanvdm_core.progress)
+        progress_file.write_bytes(b"")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env[PROGRESS_ENV] = str(progress_file)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(self.pipeline.path.parent), env.get("PYTHONPATH")]))
         threads = str(max(1, (os.cpu_count() or 1) // self.jobs))
         for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
@@ -377,6 +388,8 @@ class Scheduler:
         with open(run.log, "w") as log:
             log.write("$ " + " ".join(cmd) + "\n")
             log.flush()
+            if self._display is not None:
+                self._display.started(id(run), run.subject.name, run.stage, progress_file, run.log)
             proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=self.pipeline.path.parent, env=env)
             with self._lock:
                 self._procs.add(proc)
@@ -547,26 +560,6 @@ def _discard(staging: Path) -> None:
         with contextlib.suppress(OSError):
             p.chmod(0o755 if p.is_dir() else 0o644)
     shutil.rmtree(staging, ignore_errors=True)
-
-
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def write(self, text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(total: int, enabled: bool | None):
-    if enabled is False or total == 0:
-        return _NoBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="stage", desc="stages", disable=None if enabled is None else not enabled,
-                file=sys.stderr, dynamic_ncols=True)
 
 
 __all__ = ["Scheduler", "Subject", "StageRun", "Summary", "HumanVDMError", "referenced_ids", "user_names"]

@@ -12,6 +12,14 @@ Every stage is a module ``stages/<name>.py`` that defines ``SPEC`` (a :class:`St
 
 Module-level imports of a stage must stay light (no torch): the scheduler imports ``SPEC`` to
 validate the pipeline before anything runs. Heavy imports go inside ``run``.
+
+Progress: a stage reports how far it is with ``ctx.progress(done, total, unit, what)`` (e.g.
+``ctx.progress(120, 500, "it", "optimise Gaussians")``; library code it calls uses
+:func:`humanvdm_core.progress.report`, the same call). The scheduler passes a file path in
+``$HUMANVDM_PROGRESS``; each report appends one JSON line ``{"t", "done", "total", "unit", "what"}``
+to it (throttled to a few per second), which the scheduler reads to show every active run's phase,
+count, rate and ETA. Without the variable a report does nothing. The format is in
+:mod:`humanvdm_core.progress`. The log (stdout/stderr) is for people and is never parsed for progress.
 """
 
 from __future__ import annotations
@@ -171,6 +179,12 @@ class StageContext:
     params: dict[str, Any]
     backend: str
     log: logging.Logger
+
+    def progress(self, done: float, total: float | None = None, unit: str = "it", what: str = "") -> None:
+        """Report progress: ``done`` of ``total`` ``unit`` in the phase ``what`` (see the module docstring)."""
+        from humanvdm_core.progress import report
+
+        report(done, total, unit, what)
 
     def attrs(self) -> dict[str, str]:
         """Header attributes for files this stage writes (content-determined only)."""

@@ -206,10 +206,13 @@ def upscale_frame_set(src: str | Path, dst: str | Path, opts: UpscaleOptions, ba
             log.info("frames already %dx%d: pass-through (copied %d files unchanged)", size, size, n)
         return {"passthrough": True, "frames": len(paths), "source_size": size, "target_size": size}
 
+    from humanvdm_core.progress import report
+
     fn = BACKENDS[backend]
     for i, p in enumerate(paths):
         out = fn(read_exr(p), opts)
         write_exr(dst / FRAMES_DIR / frame_name(i), out, attrs={**(attrs or {}), "frame_index": i})
+        report(i + 1, len(paths), "frames", f"upscale to {opts.target_size}²")
     cams.scaled(opts.target_size, opts.target_size).save(dst / CAMERAS_FILE)
 
     layers = sorted(d.name for d in src.iterdir() if d.is_dir() and d.name != FRAMES_DIR and any(d.glob("*.exr")))

@@ -120,16 +120,19 @@ def run(ctx: StageContext) -> None:
     from humanvdm_core.frames import write_frames
 
     torch.manual_seed(p["seed"])
+    ctx.progress(0, 2, "steps", "fit a body to the photo, build the proxy")
     proxy = build_body_proxy(ctx.inputs["photo"], num_frames=p["num_frames"], size=p["resolution"],
                              elevation_deg=p["elevation_deg"], background=BACKGROUND,
                              iterations=p["fit_iterations"], fill=p["fill"], seed=p["seed"],
                              geometry=p["geometry"], logger=ctx.log)
     for warning in proxy.warnings:
         ctx.log.warning("%s", warning)
+    ctx.progress(1, 2, "steps", "render and write the orbit")
     frames = proxy.orbit_frames()
     write_frames(ctx.outputs["orbit"], frames, proxy.cameras, {**ctx.attrs(), "layer": "rgba"})
     if proxy.clothed is not None:
         proxy.clothed.save(Path(ctx.outputs["orbit"]) / PROXY_FILE)
+    ctx.progress(2, 2, "steps", "render and write the orbit")
     ctx.log.info("wrote %d frames at %d² (frame %d is the input view)", len(frames), p["resolution"],
                  proxy.front_index)
 

@@ -26,12 +26,17 @@ Output ``report``:
   :mod:`humanvdm_core.perceptual`, repeated under ``definitions``); ``geometry`` (scan runs):
   ``p2s``/``s2p``/``chamfer`` in world units and ``*_rel`` as fractions of the subject height.
   A perceptual metric whose weight file is missing reads ``"unavailable: put <file> at <path>"``;
-  geometry without a scan reads ``"unavailable: ..."``. Infinite PSNR is written as ``"inf"``.
+  geometry without a scan reads ``"unavailable: ..."``. Infinite PSNR is written as ``"inf"``. ``basis`` says
+  what each group measures: without a scan the protocol views are a *fit to the generated video — not
+  accuracy* (the frames are what the Gaussians were fitted to); with a scan the protocol views are a fit
+  to its training views, the held-out views and the geometry are accuracy against the scan.
 - ``grid.png``: one row per view; columns ground truth | ours | |error| heatmap (mean absolute RGB
   error, 0 -> 0.5 mapped through the inferno colour map);
 - ``orbit.gif`` (the frame set as a video, ``media_size``²), ``turntable.gif`` (copied from the
   Gaussians artifact when it has one), ``fit_overlay.png`` (the ``body`` input's overlay, when given);
-- ``report.html``: those pictures, the numbers and the grid.
+- ``report.html``: those pictures, the numbers (labelled with their ``basis``) and the grid. The run's own
+  report (input photo, viewer, backends, params, times, memory, versions from the lockfile) is
+  ``runs/<subject>/report.html``, written by ``humanvdm run`` (:mod:`humanvdm_core.report`).
 
 Errors a user can fix (no gaussians.npz, a wrong schema, a frame set without cameras, a scan run
 whose frames lack ``world_from_scan``, a perceptual weight file with the wrong keys) exit 3.

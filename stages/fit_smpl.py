@@ -204,6 +204,7 @@ def run(ctx: StageContext) -> None:
     frames = read_frames(root, indices=selected)
     names = [f"frame {paths[i].stem}" for i in selected]
     ctx.log.info("detecting the person in %d of %d frames", len(selected), len(paths))
+    ctx.progress(0, 3, "steps", f"detect the person in {len(selected)} frames")
     observations, failed = observe_frames(frames, list(range(len(selected))), names)
     for o in observations:  # back to frame-set indices
         o.index = selected[o.index]
@@ -220,7 +221,9 @@ def run(ctx: StageContext) -> None:
                          f"Skipped: " + "; ".join(f"{paths[i].stem}: {why}" for i, why in failed.items()))
 
     torch.manual_seed(p["seed"])
+    ctx.progress(1, 3, "steps", f"fit the body ({p['iterations']} iterations)")
     fit = fit_body(model, cameras, observations, options, logger=ctx.log)
+    ctx.progress(2, 3, "steps", "measure the fit, write the outputs")
     used_cams = cameras.subset(fit.frame_indices)
     faces = model.faces.numpy().astype(np.int64)
     vertices = fit.output.vertices[0].numpy()
@@ -300,6 +303,7 @@ def run(ctx: StageContext) -> None:
         "warnings": warnings, "warnings_summary": summary,
     }
     atomic_write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
+    ctx.progress(3, 3, "steps", "measure the fit, write the outputs")
     ctx.log.info("body fit: mean reprojection %.1f px, mean IoU %.3f over %d frame(s)%s", mean_reproj,
                  float(iou.mean()), len(fit.frame_indices), f"; {len(warnings)} warning(s)" if warnings else "")
 

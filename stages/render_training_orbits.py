@@ -92,6 +92,7 @@ def run(ctx: StageContext) -> None:
     p = ctx.params
     _check_params(p)
     background = background_colour(p["background"], p["seed"])
+    ctx.progress(0, 3, "steps", "load the scan")
     scan = load_scan(ctx.inputs["scan"])
     world_from_scan = normalization_transform(scan, p["subject_height"], p["yaw_deg"])
     mesh = scan.transformed(world_from_scan)
@@ -107,12 +108,15 @@ def run(ctx: StageContext) -> None:
                  len(mesh.vertices), mesh.num_faces,
                  "none" if mesh.texture is None else f"{mesh.texture.shape[1]}x{mesh.texture.shape[0]}",
                  radius, ", ".join(f"{c:.3f}" for c in background))
+    ctx.progress(1, 3, "steps", "render the orbit")
     result = render_views(mesh, cameras, background, samples=p["samples"])
+    ctx.progress(2, 3, "steps", "write the frames")
     out = ctx.outputs["orbit"]
     attrs = ctx.attrs()
     write_frames(out, result.rgba, cameras, {**attrs, "layer": "rgba"})
     write_frames(out, result.depth, None, {**attrs, "layer": "depth"}, layer="depth")
     write_frames(out, result.normals, None, {**attrs, "layer": "normals"}, layer="normals")
+    ctx.progress(3, 3, "steps", "write the frames")
 
 
 if __name__ == "__main__":

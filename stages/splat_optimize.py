@@ -17,7 +17,11 @@ Output ``gaussians``:
 - ``gaussians.npz`` (schema ``humanvdm.gaussians`` v1, see :func:`humanvdm_core.splat.human.gaussians_arrays`):
   posed ``means``, ``quats`` (wxyz), ``scales`` (linear), ``opacities``, ``colors`` (sRGB [0, 1]),
   ``canonical_means``, ``skinning_weights``, UV texel indices, refined ``pose``/``transl``, ``background``;
-- ``point_cloud.ply``: the standard 3DGS binary PLY (opens in common splat viewers);
+- ``point_cloud.ply``: the standard 3DGS binary PLY, by default in the 3DGS/COLMAP axes (``ply_axes``
+  ``y-down``: x right, y down, z forward, the subject facing -z; upright in SuperSplat); ``y-up`` keeps our
+  world's axes (y up, the subject facing +z; upright in gaussian-splats-3d's default view). Metres. The
+  header's comments state the axes. See :data:`humanvdm_core.splat.human.PLY_AXES`;
+- ``point_cloud.splat``: the same Gaussians in the compact web ``.splat`` format (32 bytes each, same axes);
 - ``turntable/NNNN.png`` (``turntable_views`` views at ``turntable_size``², on the input orbit's
   elevation and radius) and ``turntable.gif``, for people (``turntable_views=0`` skips them);
 - ``train_log.json``: loss curve, wall time, final training PSNR, resolved settings.
@@ -34,7 +38,8 @@ SPEC = StageSpec(
     summary="Fit body-anchored 3D Gaussians (UV position map + features + MLP decoder) to the orbit frames.",
     inputs={"frames": "frame set (RGBA frames + cameras), normally the 81-frame interpolated orbit",
             "body": "body fit directory holding body.npz (fit-smpl)"},
-    outputs={"gaussians": "gaussians.npz, point_cloud.ply (3DGS), turntable/ + turntable.gif, train_log.json"},
+    outputs={"gaussians": "gaussians.npz, point_cloud.ply (3DGS), point_cloud.splat, turntable/ + turntable.gif, "
+                          "train_log.json"},
     params={
         "preset": Param("auto", "size/quality preset (auto: full with CUDA, else cpu)",
                         choices=("auto", "tiny", "cpu", "full")),
@@ -63,6 +68,9 @@ SPEC = StageSpec(
         "seed": Param(0, "seed (feature/decoder initialisation, view order)"),
         "turntable_views": Param(36, "turntable renders (0: none)"),
         "turntable_size": Param(512, "turntable render size in pixels"),
+        "ply_axes": Param("y-down", "axes of point_cloud.ply/.splat: y-down (3DGS/COLMAP: x right, y down, z forward; "
+                                    "upright in SuperSplat) or y-up (ours: y up, subject facing +z; upright in "
+                                    "gaussian-splats-3d's default view)", choices=("y-down", "y-up")),
     },
     backends=("embedded",),
 )
@@ -132,8 +140,9 @@ def run(ctx: StageContext) -> None:
     background = views.background.cpu().numpy()
     arrays = H.gaussians_arrays(human, background)
     write_npz(out / "gaussians.npz", arrays, H.GAUSSIANS_SCHEMA, H.GAUSSIANS_VERSION)
-    H.write_ply(out / "point_cloud.ply", arrays["means"], arrays["quats"], arrays["scales"], arrays["opacities"],
-                arrays["colors"])
+    export = (arrays["means"], arrays["quats"], arrays["scales"], arrays["opacities"], arrays["colors"])
+    H.write_ply(out / "point_cloud.ply", *export, axes=p["ply_axes"])
+    H.write_splat(out / "point_cloud.splat", *export, axes=p["ply_axes"])
     if p["turntable_views"] > 0:
         from PIL import Image
 

@@ -133,3 +133,24 @@ def test_verify_and_gc_commands(toy):
     obj.write_text("tampered")
     bad = cli(toy, "verify")
     assert bad.returncode == 1 and "1 corrupt" in bad.stdout
+
+
+def test_params_lists_every_stage_param_and_run_help_points_there(toy):
+    out = cli(toy, "params")
+    assert out.returncode == 0, out.stderr
+    assert "shout.steps = 0  (int)" in out.stdout and "sleep in this many steps" in out.stdout
+    assert "measure.bucket = 10  (int)" in out.stdout and "backend: embedded (default)" in out.stdout
+    one = cli(toy, "params", "measure")
+    assert "measure.bucket" in one.stdout and "shout.times" not in one.stdout
+    assert cli(toy, "params", "nope").returncode == 2
+    assert "shout.upper = False" in cli(toy, "dag", "--params").stdout
+    helptext = cli(toy, "run", "--help").stdout
+    assert "humanvdm params [STAGE]" in helptext and "--quiet" in helptext and "plain progress lines" in helptext
+
+
+def test_params_of_the_real_pipeline_show_choices():
+    res = subprocess.run([sys.executable, "-m", "humanvdm_core.cli", "params", "splat-optimize"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "splat-optimize.preset = 'auto'  (str)  choices: auto, tiny, cpu, full" in res.stdout
+    assert "splat-optimize.ply_axes = 'y-down'" in res.stdout

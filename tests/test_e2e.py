@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import re
+import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from humanvdm_core.frames import frame_paths, read_cameras
@@ -75,6 +78,8 @@ def test_whole_pipeline_on_a_synthetic_subject(tmp_path):
     text = json.dumps(metrics)
     assert "psnr" in text and "unavailable" in text  # LPIPS/CLIP weights are not installed in tests
     assert (view / "evaluate" / "report" / "report.html").is_file()
+    assert metrics["basis"]["heldout"].startswith("accuracy")
+    assert "A scan run" in (view / "report.html").read_text()
     again = humanvdm(store, "run", str(scan), *FULL)
     assert "0 stage run(s) ran, 6 cached" in again.stdout
 
@@ -102,5 +107,22 @@ def test_photo_in_gaussians_out(tmp_path):
     assert all((report / name).stat().st_size > 1000 for name in metrics["media"].values())
     for rel in ("splat-optimize/gaussians/point_cloud.ply", "evaluate/report/report.html", "evaluate/report/orbit.gif"):
         assert f"  {rel}" in res.stdout  # the summary points at what a person opens
+    assert "  report.html   <- open this first" in res.stdout and "humanvdm view ryota --store" in res.stdout
+    assert "ryota/splat-optimize: ran in" in res.stderr and "ryota/diffuse: started (log:" in res.stderr
+    html = (view / "report.html").read_text()
+    assert "Fit to the generated video — not accuracy" in html and "body-prior" in html
+    assert metrics["basis"] == {"protocol": "fit to the generated video — not accuracy"}
+    # the PLY is in the 3DGS axes (y down, z forward): our y-up world turned 180 degrees about x
+    from humanvdm_core.io import read_npz
+    from humanvdm_core.splat.human import read_ply
+
+    npz = read_npz(view / "splat-optimize" / "gaussians" / "gaussians.npz")
+    ply = read_ply(view / "splat-optimize" / "gaussians" / "point_cloud.ply", world=False)
+    np.testing.assert_allclose(ply["means"], npz["means"] * [1, -1, -1], atol=1e-6)
+    if shutil.which("chromium"):  # every picture of the report loads in a browser
+        from tests import browser
+
+        imgs = re.findall(r"<img [^>]*>", browser.dump_dom((view / "report.html").as_uri(), 3000))
+        assert len(imgs) >= 5 and all('data-loaded="1"' in i for i in imgs), imgs
     again = humanvdm(store, "run", str(photo), *args)
     assert "0 stage run(s) ran, 6 cached" in again.stdout

@@ -4,7 +4,8 @@ Each test gets its own folder with a ``pipeline.yaml`` and a uniquely named stag
 module caches of earlier tests never interfere). The stages:
 
 - ``shout``   (input ``$text``):  writes the text ``times`` times (upper-cased when ``upper``);
-              fails with a user error when the text contains FAIL; sleeps ``sleep`` seconds.
+              fails with a user error when the text contains FAIL; sleeps ``sleep`` seconds
+              (in ``steps`` steps, reporting progress after each, when ``steps`` > 0).
 - ``measure`` (``shout.out``):    writes ``len(text) // bucket`` (coarse: early cutoff material).
 - ``report``  (``measure.out``):  writes "size=<n>".
 
@@ -45,7 +46,8 @@ STAGES = {
     "shout": '''
 SPEC = StageSpec("shout", "repeat the text", inputs={"src": "text file"}, outputs={"out": "text"},
                  params={"times": Param(1, "repetitions"), "upper": Param(False, "upper-case"),
-                         "sleep": Param(0.0, "seconds to sleep")})
+                         "sleep": Param(0.0, "seconds to sleep"),
+                         "steps": Param(0, "sleep in this many steps, reporting progress after each")})
 
 
 def run(ctx):
@@ -55,7 +57,13 @@ def run(ctx):
         raise InputError("this text cannot be shouted")
     if "CRASH" in text:
         raise RuntimeError("a bug")
-    time.sleep(ctx.params["sleep"])
+    steps = ctx.params["steps"]
+    if steps > 0:
+        for i in range(steps):
+            time.sleep(ctx.params["sleep"] / steps)
+            ctx.progress(i + 1, steps, "steps", "shouting")
+    else:
+        time.sleep(ctx.params["sleep"])
     out = text * ctx.params["times"]
     (ctx.outputs["out"] / "text.txt").write_text(out.upper() if ctx.params["upper"] else out)
     ledger("shout", text, t0)

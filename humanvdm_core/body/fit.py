@@ -76,6 +76,7 @@ from humanvdm_core.body import load_body_model
 from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.errors import ConfigError, HumanVDMError, InputError
+from humanvdm_core.progress import report
 
 log = logging.getLogger("humanvdm.body.fit")
 
@@ -588,6 +589,7 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
     opt = torch.optim.Adam([{"params": g, "lr": lr} for g, lr in zip(groups, base_lr, strict=True)])
     decide_at = {n2 // 4, n2 // 2}
     for step in range(n2):
+        report(step, n2, "it", "fit the body")
         _cosine_lr(opt, base_lr, step, n2)
         opt.zero_grad()
         params = make_params(joint_rot)

@@ -393,6 +393,9 @@ def synthesize_orbit(photo_path: str | Path, weights: str | Path, backend: str =
     cameras.extra.update({"background": np.ones(3, np.float64), "fill": np.float64(fill)})
 
     def progress(i: int, n: int) -> None:
+        from humanvdm_core.progress import report
+
+        report(i, n, "steps", f"{model.kind} sampling")
         if i == n or i % max(1, n // 5) == 0:
             lg.info("%s: sampling step %d/%d", model.kind, i, n)
 

@@ -41,6 +41,7 @@ import torch
 
 from humanvdm_core.errors import InputError
 from humanvdm_core.models import sv3d
+from humanvdm_core.progress import report
 
 log = logging.getLogger("humanvdm.sv3d_finetune")
 
@@ -297,6 +298,7 @@ def finetune(model: sv3d.SV3D, orbits: list[TrainingOrbit], opts: FinetuneOption
             done += n
         optimizer.step()
         step += 1
+        report(step, opts.steps, "steps", "fine-tune SV3D")
         losses.append(total)
         if step == 1 or step % max(1, opts.steps // 10) == 0 or step == opts.steps:
             lg.info("fine-tuning step %d/%d: loss %.5f", step, opts.steps, total)

@@ -25,9 +25,11 @@ seeded, fixed order; loss ``0.8 L1 + 0.2 (1 - SSIM) [+ 0.2 LPIPS] + 10 |offset|^
 renders composited over the frame set's background colour. Deterministic for a seed on one machine
 (single-threaded torch gives identical bytes).
 
-Export: :func:`gaussians_arrays` (the ``humanvdm.gaussians`` v1 NPZ members) and :func:`write_ply` /
-:func:`read_ply` (the standard 3DGS binary PLY: ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity
-scale_0..2 rot_0..3``; ``f_dc = (rgb - 0.5) / C0``, log scales, logit opacity, unit wxyz quaternions).
+Export: :func:`gaussians_arrays` (the ``humanvdm.gaussians`` v1 NPZ members, in our world: y up, the
+subject facing +z, metres) and :func:`write_ply` / :func:`read_ply` (the standard 3DGS binary PLY:
+``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3``; ``f_dc = (rgb - 0.5) / C0``, log
+scales, logit opacity, unit wxyz quaternions), by default in the 3DGS/COLMAP axes (y down, z forward:
+see :data:`PLY_AXES`), and :func:`write_splat` (the compact web ``.splat``).
 """
 
 from __future__ import annotations
@@ -493,7 +495,10 @@ def training_loss(human: GaussianHuman, views: TrainingViews, ids: torch.Tensor,
 
 def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
                   log: Callable[[str], None] | None = None) -> FitResult:
-    """Optimise ``human`` (in place) against ``views``; returns the loss curve and timings."""
+    """Optimise ``human`` (in place) against ``views``; returns the loss curve and timings. Progress goes to
+    the stage's progress channel (:func:`humanvdm_core.progress.report`)."""
+    from humanvdm_core.progress import report
+
     config.check()
     torch.manual_seed(config.seed)
     views = views.to(human.anchors.device)
@@ -512,6 +517,7 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        report(it + 1, len(batches), "it", "optimise Gaussians")
         if it % config.log_every == 0 or it == len(batches) - 1:
             result.losses.append(float(loss.detach()))
             result.logged_iterations.append(it)
@@ -524,6 +530,7 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
         for i in range(len(views.images)):
             pred, _ = render(gs, views.w2c[i:i + 1], views.K[i:i + 1], S, S, views.background, ts)
             scores.append(psnr(pred[0], views.images[i]))
+            report(i + 1, len(views.images), "views", "training PSNR")
     result.train_psnr = float(np.mean(scores)) if scores else float("nan")
     return result
 
@@ -563,12 +570,41 @@ PLY_PROPERTIES: tuple[str, ...] = (
     ("x", "y", "z", "nx", "ny", "nz") + tuple(f"f_dc_{i}" for i in range(3)) + tuple(f"f_rest_{i}" for i in range(45))
     + ("opacity",) + tuple(f"scale_{i}" for i in range(3)) + tuple(f"rot_{i}" for i in range(4)))
 
+# Axes of the exported files. Our own world (the NPZ, the cameras): x right, y up, the subject facing +z.
+# "y-down" (the default) is the 3DGS/COLMAP convention that splat viewers built for captures assume
+# (SuperSplat turns such files 180 degrees about z on load): x right, y down, z forward, so a camera at
+# the identity rotation behind -z sees the subject upright and from the front. It is our world rotated
+# 180 degrees about x: (x, y, z) -> (x, -y, -z), rotations q -> (0, 1, 0, 0) * q. "y-up" keeps our axes
+# (what gaussian-splats-3d shows upright with its default camera up, +y).
+PLY_AXES = ("y-down", "y-up")
+DEFAULT_PLY_AXES = "y-down"
+PLY_AXES_COMMENT = {
+    "y-down": "axes y-down: x right, y down, z forward (3DGS/COLMAP convention; the subject faces -z)",
+    "y-up": "axes y-up: x right, y up, z toward the viewer (OpenGL convention; the subject faces +z)",
+}
+
+
+def to_axes(means: np.ndarray, quats: np.ndarray, axes: str, inverse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Our world's ``means`` (M, 3) and wxyz ``quats`` (M, 4) in ``axes``; ``inverse``: from ``axes`` to ours."""
+    if axes not in PLY_AXES:
+        raise ConfigError(f"axes {axes!r}: choose from {list(PLY_AXES)}")
+    means, quats = np.asarray(means), np.asarray(quats)
+    if axes == "y-up":
+        return means, quats
+    m = means * np.array([1.0, -1.0, -1.0], dtype=means.dtype)
+    w, x, y, z = (quats[:, i] for i in range(4))
+    if inverse:  # (0, -1, 0, 0) * q
+        return m, np.stack([x, -w, z, -y], axis=1)
+    return m, np.stack([-x, w, -z, y], axis=1)  # (0, 1, 0, 0) * q: 180 degrees about x, then q
+
 
 def write_ply(path: str | Path, means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
-              colors: np.ndarray) -> None:
-    """Write the standard 3DGS binary little-endian PLY (degree-0 colour, zero normals and f_rest)."""
+              colors: np.ndarray, axes: str = DEFAULT_PLY_AXES) -> None:
+    """Write the standard 3DGS binary little-endian PLY (degree-0 colour, zero normals and f_rest) from our
+    world's arrays, in ``axes`` (:data:`PLY_AXES`; stated in a header comment). Units: our world's (metres)."""
     from humanvdm_core.io import atomic_write_bytes
 
+    means, quats = to_axes(np.asarray(means, dtype=np.float64), np.asarray(quats, dtype=np.float64), axes)
     n = len(means)
     data = np.zeros(n, dtype=[(name, "<f4") for name in PLY_PROPERTIES])
     for i, axis in enumerate("xyz"):
@@ -579,20 +615,33 @@ def write_ply(path: str | Path, means: np.ndarray, quats: np.ndarray, scales: np
     op = np.clip(np.asarray(opacities, dtype=np.float64), OPACITY_EPS, 1.0 - OPACITY_EPS)
     data["opacity"] = np.log(op / (1.0 - op))
     log_s = np.log(np.maximum(np.asarray(scales, dtype=np.float64), 1e-12))
-    q = np.asarray(quats, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    q = quats / np.linalg.norm(quats, axis=1, keepdims=True)
     for i in range(3):
         data[f"scale_{i}"] = log_s[:, i]
     for i in range(4):
         data[f"rot_{i}"] = q[:, i]
-    header = "ply\nformat binary_little_endian 1.0\ncomment Human-VDM splat-optimize\n" \
-             f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in PLY_PROPERTIES) + "end_header\n"
+    header = ("ply\nformat binary_little_endian 1.0\ncomment Human-VDM splat-optimize\n"
+              f"comment {PLY_AXES_COMMENT[axes]}\ncomment units: metres\n"
+              f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in PLY_PROPERTIES) + "end_header\n")
     atomic_write_bytes(path, header.encode("ascii") + data.tobytes())
 
 
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
+def ply_axes(path: str | Path) -> str:
+    """The axes a PLY states in its header comment; a PLY that states none is taken as 3DGS's (y-down)."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    for line in head.split(b"end_header")[0].decode("ascii", "replace").splitlines():
+        if line.startswith("comment axes "):
+            name = line.split()[2].rstrip(":")
+            if name in PLY_AXES:
+                return name
+    return "y-down"
+
+
+def read_ply(path: str | Path, world: bool = True) -> dict[str, np.ndarray]:
     """Read a 3DGS PLY (binary little endian, float properties) -> ``means``, ``quats`` (unit wxyz),
-    ``scales`` (linear), ``opacities`` (sigmoid), ``colors`` (0.5 + C0 f_dc), ``properties`` (names)."""
+    ``scales`` (linear), ``opacities`` (sigmoid), ``colors`` (0.5 + C0 f_dc), ``properties`` (names),
+    ``axes`` (the file's). ``world``: means and quats converted to our world's axes (y up), else as stored."""
     raw = Path(path).read_bytes()
     end = raw.find(b"end_header\n")
     if not raw.startswith(b"ply\n") or end < 0:
@@ -610,12 +659,54 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
         return np.stack([data[n].astype(np.float64) for n in names], axis=1)
 
     q = cols([f"rot_{i}" for i in range(4)])
+    means, q = cols(["x", "y", "z"]), q / np.linalg.norm(q, axis=1, keepdims=True)
+    axes = ply_axes(path)
+    if world:
+        means, q = to_axes(means, q, axes, inverse=True)
     return {
-        "means": cols(["x", "y", "z"]), "quats": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "means": means, "quats": q,
         "scales": np.exp(cols([f"scale_{i}" for i in range(3)])),
         "opacities": 1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64))),
         "colors": 0.5 + SH_C0 * cols([f"f_dc_{i}" for i in range(3)]), "properties": np.array(props),
+        "axes": np.array(axes),
     }
+
+
+SPLAT_RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+
+
+def write_splat(path: str | Path, means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
+                colors: np.ndarray, axes: str = DEFAULT_PLY_AXES) -> None:
+    """The compact web ``.splat`` format (antimatter15's, read by SuperSplat, gaussian-splats-3d and most web
+    viewers): 32 bytes a Gaussian, no header: position 3 x float32, linear scale 3 x float32, sRGB colour
+    and opacity 4 x uint8, wxyz rotation 4 x uint8 (``q * 128 + 128``); largest, most opaque Gaussians
+    first. Same ``axes`` as the PLY; about 7x smaller than it (no spherical harmonics)."""
+    from humanvdm_core.io import atomic_write_bytes
+
+    means, quats = to_axes(np.asarray(means, dtype=np.float64), np.asarray(quats, dtype=np.float64), axes)
+    scales = np.asarray(scales, dtype=np.float64)
+    opac = np.clip(np.asarray(opacities, dtype=np.float64).reshape(-1), 0.0, 1.0)
+    order = np.argsort(-(np.prod(scales, axis=1) * opac), kind="stable")
+    rec = np.zeros(len(means), dtype=SPLAT_RECORD)
+    rec["position"] = means[order]
+    rec["scale"] = scales[order]
+    rgba = np.concatenate([np.asarray(colors, dtype=np.float64), opac[:, None]], axis=1)[order]
+    rec["rgba"] = np.clip(np.rint(rgba * 255), 0, 255).astype(np.uint8)
+    q = quats[order] / np.linalg.norm(quats[order], axis=1, keepdims=True)
+    rec["rot"] = np.clip(np.rint(q * 128 + 128), 0, 255).astype(np.uint8)
+    atomic_write_bytes(path, rec.tobytes())
+
+
+def read_splat(path: str | Path) -> dict[str, np.ndarray]:
+    """A ``.splat`` file's records as stored: ``means``, ``scales``, ``colors``, ``opacities``, ``quats`` (unit wxyz)."""
+    raw = Path(path).read_bytes()
+    if len(raw) % SPLAT_RECORD.itemsize:
+        raise InputError(f"{path}: not a .splat file (size {len(raw)} is not a multiple of 32)")
+    rec = np.frombuffer(raw, dtype=SPLAT_RECORD)
+    q = (rec["rot"].astype(np.float64) - 128.0) / 128.0
+    return {"means": rec["position"].astype(np.float64), "scales": rec["scale"].astype(np.float64),
+            "colors": rec["rgba"][:, :3] / 255.0, "opacities": rec["rgba"][:, 3] / 255.0,
+            "quats": q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)}
 
 
 def turntable_cameras(cameras, views: int, size: int):
@@ -631,6 +722,8 @@ def turntable_cameras(cameras, views: int, size: int):
 def render_views_np(human: GaussianHuman, cameras, background: np.ndarray, chunk: int = 1,
                     tile_size: int = 16) -> np.ndarray:
     """(N, H, W, 3) float renders of the human from ``cameras``, in [0, 1]."""
+    from humanvdm_core.progress import report
+
     dev = human.anchors.device
     bg = torch.as_tensor(np.asarray(background, dtype=np.float32), device=dev)
     w2c = torch.as_tensor(cameras.w2c, dtype=torch.float32, device=dev)
@@ -641,6 +734,7 @@ def render_views_np(human: GaussianHuman, cameras, background: np.ndarray, chunk
         for i in range(0, len(w2c), chunk):
             img, _ = render(gs, w2c[i:i + chunk], K[i:i + chunk], cameras.width, cameras.height, bg, tile_size)
             out.append(img.clamp(0, 1).cpu().numpy())
+            report(min(i + chunk, len(w2c)), len(w2c), "views", "render turntable")
     return np.concatenate(out)
 
 
