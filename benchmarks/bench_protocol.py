@@ -140,7 +140,7 @@ def write_strip(path: Path, rows: list[np.ndarray]) -> None:
 def run_pipeline(photo: Path, store: Path, args) -> dict:
     """``humanvdm run`` on the photo in a new process; returns the command, exit code, wall time, log tail."""
     cmd = [sys.executable, "-m", "humanvdm_core.cli", "run", str(photo), "--store", str(store), "--no-progress",
-           "--jobs", str(args.jobs)]
+           "--jobs", str(args.jobs)] + (["--until", "diffuse"] if args.orbit_only else [])
     for s in args.set or []:
         cmd += ["--set", s]
     env = dict(os.environ)
@@ -201,7 +201,10 @@ def run_scan(folder: Path, work: Path, args) -> dict:
     # (b) the Gaussians at the exact protocol cameras, against the scan at the same cameras
     cams = view_cameras(orbit_cams, args.eval_size)
     truth = render_views(mesh, cams, WHITE).rgba
-    g_rgb, g_a = render_gaussians(load_gaussians(run_dir / "splat-optimize" / "gaussians"), cams, WHITE)
+    if args.orbit_only:
+        g_rgb, g_a = np.ones((len(VIEWS), args.eval_size, args.eval_size, 3), np.float32), None
+    else:
+        g_rgb, g_a = render_gaussians(load_gaussians(run_dir / "splat-optimize" / "gaussians"), cams, WHITE)
 
     def prep(rgb, alpha):
         if args.no_reframe:
@@ -216,14 +219,15 @@ def run_scan(folder: Path, work: Path, args) -> dict:
     for i, (view, az) in enumerate(VIEWS.items()):
         o = prep(frames[i, ..., :3], frames[i, ..., 3])
         ot = prep(orbit_truth[i, ..., :3], orbit_truth[i, ..., 3])
-        g = prep(g_rgb[i], g_a[i])
         t = prep(truth[i, ..., :3], truth[i, ..., 3])
+        g = (g_rgb[i], None) if g_a is None else prep(g_rgb[i], g_a[i])
         frame_az = float(orbit_cams.azimuth_deg[idx[i]])
         orbit_views[view] = {**scores(o, ot), "frame": idx[i], "frame_azimuth_deg": round(frame_az, 3)}
-        gauss_views[view] = {**scores(g, t), "azimuth_deg": az}
+        if g_a is not None:
+            gauss_views[view] = {**scores(g, t), "azimuth_deg": az}
         rows.append(np.concatenate([label_cell(t[0], f"{view}: truth az {az:.0f}"),
                                     label_cell(o[0], f"orbit frame {idx[i]} az {frame_az:.1f}"),
-                                    label_cell(g[0], "Gaussians")], axis=1))
+                                    label_cell(g[0], "Gaussians" if g_a is not None else "Gaussians: not run")], axis=1))
     suffix = "" if args.label == "after" else f"_{args.label}"
     strip = RESULTS / f"protocol_{name}{suffix}.png"
     write_strip(strip, rows)
@@ -231,13 +235,13 @@ def run_scan(folder: Path, work: Path, args) -> dict:
     return {"scan": name, "path": str(folder), "yaw_deg": yaw, "faces": int(mesh.num_faces),
             "command": run["command"], "pipeline_wall_s": run["wall_s"], "stages": stages,
             "orbit": {"views": orbit_views, **summarize(orbit_views)},
-            "gaussians": {"views": gauss_views, **summarize(gauss_views)},
+            "gaussians": {"views": gauss_views, **summarize(gauss_views)} if gauss_views else None,
             "strip": str(strip.relative_to(REPO))}
 
 
 def plain(results: dict) -> dict:
     """The protocol.json shape: per scan, per source, per metric, four numbers in F/L/B/R order."""
-    return {name: {src: {k: r[src][k] for k in METRICS} for src in ("orbit", "gaussians")}
+    return {name: {src: {k: r[src][k] for k in METRICS} for src in ("orbit", "gaussians") if r.get(src)}
             for name, r in results.items() if "error" not in r}
 
 
@@ -252,7 +256,7 @@ def compare(before_path: Path, results: dict) -> dict:
         if "error" in r or not b or "error" in b:
             continue
         out[name] = {src: {k: [b[src]["mean"][k], r[src]["mean"][k]] for k in MEANS}
-                     for src in ("orbit", "gaussians")}
+                     for src in ("orbit", "gaussians") if r.get(src) and b.get(src)}
     return out
 
 
@@ -263,12 +267,14 @@ def report(results: dict, comparison: dict) -> str:
             lines.append(f"{name}: FAILED ({r['error'].strip().splitlines()[-1] if r['error'].strip() else '?'})")
             continue
         for src in ("orbit", "gaussians"):
+            if not r.get(src):
+                continue
             m = r[src]["mean"]
             per = " ".join(f"{v[0].upper()}{p:.2f}" for v, p in zip(VIEWS, r[src]["psnr"], strict=True))
             line = (f"{name} {src:9s} PSNR {m['psnr']:.2f} ({per}) SSIM {m['ssim']:.3f} masked {m['masked_psnr']:.2f}"
                     f" IoU {m['iou']:.3f} unseen {m['unseen_mean']:.2f} side_iou {m['side_iou']:.3f}")
             lines.append(line)
-            if name in comparison:
+            if src in comparison.get(name, {}):
                 c = comparison[name][src]
                 lines.append("    before -> after: " + ", ".join(
                     f"{k} {c[k][0]:.3f} -> {c[k][1]:.3f} ({c[k][1] - c[k][0]:+.3f})" for k in MEANS))
@@ -280,8 +286,8 @@ def report(results: dict, comparison: dict) -> str:
 def save(results: dict, args) -> Path:
     comparison = compare(args.before, results) if args.label != "before" else {}
     ok = [r for r in results.values() if "error" not in r]
-    mean = {src: {k: float(np.mean([r[src]["mean"][k] for r in ok])) for k in MEANS}
-            for src in ("orbit", "gaussians")} if ok else {}
+    mean = {src: {k: float(np.mean([r[src]["mean"][k] for r in ok if r.get(src)])) for k in MEANS}
+            for src in ("orbit", "gaussians") if any(r.get(src) for r in ok)}
     doc = {"views": {v: {"azimuth_deg": az} for v, az in VIEWS.items()}, "view_order": list(VIEWS),
            "left_is": LEFT_IS, "elevation_deg": ELEVATION, "photo_size": args.photo_size,
            "photo_alpha": not args.opaque, "eval_size": args.eval_size, "reframed": not args.no_reframe,
@@ -307,6 +313,8 @@ def main() -> int:
     parser.add_argument("--work", type=Path, default=None,
                         help=f"persistent scratch folder (default {DEFAULT_WORK}/<label>)")
     parser.add_argument("--skip-pipeline", action="store_true", help="rescore the runs already in --work")
+    parser.add_argument("--orbit-only", action="store_true",
+                        help="run the pipeline until diffuse and score the orbit only (no Gaussians)")
     parser.add_argument("--set", action="append", metavar="STAGE.PARAM=VALUE",
                         help="passed to humanvdm run (e.g. splat-optimize.preset=tiny); repeatable")
     parser.add_argument("--jobs", type=int, default=1, help="humanvdm run --jobs")
