@@ -179,40 +179,33 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 _CROSS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
 
 
-def _jacobi(x: np.ndarray, free: np.ndarray, weight: np.ndarray, rhs: np.ndarray | float, iterations: int) -> np.ndarray:
-    """Jacobi steps of ``x_i = (sum_j w_j x_j + rhs_i) / sum_j w_j`` over 4-neighbours, on ``free`` pixels."""
-    den = cv2.filter2D(weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT)
-    den = np.maximum(den, 1e-6)
+def _jacobi(x: np.ndarray, free: np.ndarray, weight: np.ndarray, iterations: int) -> np.ndarray:
+    """Jacobi steps of ``x_i = sum_j w_j x_j / sum_j w_j`` over 4-neighbours, on ``free`` pixels."""
+    den = np.maximum(cv2.filter2D(weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT), 1e-6)
     x = x.astype(np.float32)
     for _ in range(iterations):
-        num = cv2.filter2D(x * weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT) + rhs
-        x = np.where(free, num / den, x)
+        x = np.where(free, cv2.filter2D(x * weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT) / den, x)
     return x
 
 
-def _pyramid_solve(x0: np.ndarray, free: np.ndarray, weight: np.ndarray, rhs_per_px2: float,
-                   iterations: int = 60, coarsest: int = 24) -> np.ndarray:
-    """Coarse-to-fine Jacobi: the problem is restricted to halved grids down to ``coarsest`` px, solved
-    there first, and each solution seeds the next finer
-    level. ``rhs_per_px2`` is the right-hand side per squared pixel of this level (0: Laplace)."""
+def _pyramid_solve(x0: np.ndarray, free: np.ndarray, weight: np.ndarray, iterations: int = 60,
+                   coarsest: int = 24) -> np.ndarray:
+    """Laplace equation by coarse-to-fine Jacobi: the problem is restricted to halved grids down to
+    ``coarsest`` px, solved there first, and each solution seeds the next finer level."""
     h, w = free.shape
     if min(h, w) <= coarsest:
-        return _jacobi(x0, free, weight, rhs_per_px2, iterations * 8)
+        return _jacobi(x0, free, weight, iterations * 8)
     half = (max(1, w // 2), max(1, h // 2))
     c_free = cv2.resize(free.astype(np.float32), half, interpolation=cv2.INTER_AREA) > 0.5
     c_weight = cv2.resize(weight, half, interpolation=cv2.INTER_AREA)
-    c_fixed = ~c_free
     # fixed values at the coarse level: the average of the fixed fine pixels under each coarse pixel
     fine_fixed = (~free).astype(np.float32)
     num = cv2.resize(x0 * fine_fixed, half, interpolation=cv2.INTER_AREA)
     den = cv2.resize(fine_fixed, half, interpolation=cv2.INTER_AREA)
-    c_x0 = np.where(c_fixed & (den > 0), num / np.maximum(den, 1e-6), cv2.resize(x0, half, interpolation=cv2.INTER_AREA))
-    # the same function on a grid of doubled spacing: the right-hand side per squared pixel is 4 times larger
-    coarse = _pyramid_solve(c_x0.astype(np.float32), c_free, c_weight.astype(np.float32), rhs_per_px2 * 4.0,
-                            iterations, coarsest)
+    c_x0 = np.where(~c_free & (den > 0), num / np.maximum(den, 1e-6), cv2.resize(x0, half, interpolation=cv2.INTER_AREA))
+    coarse = _pyramid_solve(c_x0.astype(np.float32), c_free, c_weight.astype(np.float32), iterations, coarsest)
     up = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-    x = np.where(free, up, x0).astype(np.float32)
-    return _jacobi(x, free, weight, rhs_per_px2, iterations)
+    return _jacobi(np.where(free, up, x0), free, weight, iterations)
 
 
 def run_halfdepth(domain: np.ndarray) -> np.ndarray:
@@ -244,7 +237,7 @@ def harmonic_extension(values: np.ndarray, known: np.ndarray, domain: np.ndarray
     domain's border); pixels of the domain unreachable from ``known`` take the nearest known value."""
     start = nearest_fill(values, known)
     free = domain & ~known
-    return _pyramid_solve(start.astype(np.float32), free, domain.astype(np.float32), 0.0).astype(np.float64)
+    return _pyramid_solve(start.astype(np.float32), free, domain.astype(np.float32)).astype(np.float64)
 
 
 def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
