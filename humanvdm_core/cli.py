@@ -88,6 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     _add_selection(p)
     p.add_argument("-j", "--jobs", type=int, default=1, help="stage runs in parallel (default 1)")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="compute threads per stage run (default: the cores this process may use, divided by --jobs)")
     p.add_argument("--dry-run", action="store_true", help="say what would run, run nothing")
     p.add_argument("--no-progress", action="store_true",
                    help="plain progress lines (each stage run's start and end, and every --progress-interval "
@@ -188,7 +190,7 @@ def cmd_run(args) -> int:
     pipe = _pipeline(args)
     store = Store(args.store)
     mode = "quiet" if args.quiet else "plain" if args.no_progress else "auto"
-    sched = _scheduler(args, pipe, store, jobs=args.jobs, progress=mode, progress_interval=args.progress_interval)
+    sched = _scheduler(args, pipe, store, jobs=args.jobs, threads=args.threads, progress=mode, progress_interval=args.progress_interval)
     subjects = _subjects(args, store, pipe)
     if args.dry_run:
         _print_status(sched.status(subjects))

@@ -48,6 +48,7 @@ from humanvdm_core.io import atomic_write_text
 from humanvdm_core.pipeline import Pipeline, Ref, code_fingerprint
 from humanvdm_core.progress import PROGRESS_ENV, Display
 from humanvdm_core.store import Store
+from humanvdm_core.threads import stage_threads, thread_env
 
 LOCK_NAME = "humanvdm.lock"
 _YamlLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when the wheel has it
@@ -117,6 +118,7 @@ class Scheduler:
         force: set[str] | None = None,
         until: str | None = None,
         jobs: int = 1,
+        threads: int | None = None,
         progress: str | bool | None = None,
         progress_interval: float | None = None,
     ):
@@ -126,6 +128,7 @@ class Scheduler:
         self.force = set(force or ())
         self.until = until
         self.jobs = max(1, int(jobs))
+        self.threads = threads  # compute threads per stage process; None: available cores / jobs
         # what the run shows (humanvdm_core.progress.Display): "auto" (None), "live" (True), "plain" (False), "quiet"
         self.progress = {None: "auto", True: "live", False: "plain"}.get(progress, progress)
         self.progress_interval = progress_interval
@@ -381,9 +384,7 @@ class Scheduler:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PROGRESS_ENV] = str(progress_file)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(self.pipeline.path.parent), env.get("PYTHONPATH")]))
-        threads = str(max(1, (os.cpu_count() or 1) // self.jobs))
-        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-            env.setdefault(var, threads)
+        env = thread_env(stage_threads(self.jobs, self.threads), env, override=self.threads is not None)
         t0 = time.perf_counter()
         with open(run.log, "w") as log:
             log.write("$ " + " ".join(cmd) + "\n")
