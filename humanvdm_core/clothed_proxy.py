@@ -13,10 +13,15 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    (:data:`PARTS`, from the skinning weights) of the nearest and of the farthest surface.
 2. **Domain.** The person's mask (``mask > 0.5``, dilated by one grid pixel so the proxy covers the
    whole silhouette) is the proxy's footprint: in the input view the proxy's silhouette is the mask.
-3. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
+3. **Arms in front.** Where an arm or a hand is the body's nearest surface, it is pulled back to at most
+   :data:`ARM_REACH` in front of the nearest surface of the body without its arms (fading out over
+   :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
+   single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
+   and the body behind it.
+4. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
    equation, body pixels fixed, free at the silhouette).
-4. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
+5. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller), in world units at the local depth; :data:`INFLATION` makes it
    a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
@@ -24,12 +29,12 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    (:data:`LOOSE_RANGE`), so a skirt, a gown, a coat or hair gets volume while a torso whose arms
    touch it keeps the body's own thickness. ``T = 0`` on the footprint's border, so front and back
    meet there.
-5. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T``, one vertex per grid pixel of the
+6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T``, one vertex per grid pixel of the
    footprint back-projected along its ray, two triangles per 2x2 block (one for a 3-pixel corner);
    both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
-6. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
+7. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
 
    * front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside,
      so no background colour smears onto the edge;
@@ -43,7 +48,7 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      (``facing_away``), the unseen side is the front and the head there takes the head's own
      median colour (no face is invented).
 
-7. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
+8. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
 
 :class:`ClothedProxy` holds the mesh, the per-vertex skinning, which sheet each vertex is on, and
@@ -72,6 +77,8 @@ BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from insi
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_INFLUENCES = 4
+ARM_REACH = 0.15  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
+ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -166,12 +173,17 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     covered = ((near.depth[0] > 0) & (far.depth[0] > 0) & (near.depth[0] >= lo) & (near.depth[0] <= hi)
                & (back >= lo) & (back <= hi))
 
+    # the body without its arms and hands: what lies behind an arm held in front of the body
+    limb = np.isin(parts, [PARTS.index("arms"), PARTS.index("hands")])
+    trunk_faces = faces[~limb[faces].all(axis=1)]
+    trunk = render_views(TexturedMesh(vertices, trunk_faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+
     def part_map(result) -> np.ndarray:
         p = np.floor(result.rgba[0, ..., 0] * len(PARTS)).astype(np.int64)
         return np.where(result.depth[0] > 0, np.clip(p, 0, len(PARTS) - 1), -1)
 
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
-            "front_part": part_map(near), "back_part": part_map(far)}
+            "front_part": part_map(near), "back_part": part_map(far), "trunk_front": trunk.depth[0].astype(np.float64)}
 
 
 # ----------------------------------------------------------------------------- PDE helpers
@@ -238,6 +250,15 @@ def harmonic_extension(values: np.ndarray, known: np.ndarray, domain: np.ndarray
     start = nearest_fill(values, known)
     free = domain & ~known
     return _pyramid_solve(start.astype(np.float32), free, domain.astype(np.float32)).astype(np.float64)
+
+
+def outside_of(region: np.ndarray) -> np.ndarray:
+    """Pixels not in ``region`` (H, W bool) that connect to the image border without crossing it (4-connected):
+    everything but ``region`` and the holes it encloses."""
+    free = (~region).astype(np.uint8)
+    padded = np.pad(free, 1, constant_values=1)
+    _, labels = cv2.connectedComponents(padded, connectivity=4)
+    return (labels == labels[0, 0])[1:-1, 1:-1]
 
 
 def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -376,20 +397,38 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         smooth = cv2.medianBlur(np.where(body, maps[key], 0.0).astype(np.float32), 5)
         inner = cv2.erode(body.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         maps[key] = np.where(inner & (np.abs(maps[key] - smooth) > 0.05), smooth, maps[key])
+    # an arm in front of or beside the body stands at most ARM_REACH out of the body's nearest surface: a
+    # single photo's arm depth is the least certain part of the fit, and the proxy fills everything between
+    # an arm and the body behind it. The pull fades out over ARM_NEAR from the body's silhouette, so an
+    # arm reaching out sideways keeps its depth.
+    fx = float(cam_g.K[0, 0, 0])
+    limbs = [PARTS.index("arms"), PARTS.index("hands")]
+    trunk = maps["trunk_front"] > 0
+    if trunk.any():
+        ref = nearest_fill(maps["trunk_front"], trunk)
+        gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
+        fade = np.clip(1.0 - gap_px * ref / fx / ARM_NEAR, 0.0, 1.0)
+        arm = body & np.isin(maps["front_part"], limbs)
+        shift = np.where(arm, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
+        maps["front"] = maps["front"] + shift
+        maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
     mid_body = 0.5 * (maps["front"] + maps["back"])
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
     t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)
 
-    fx = float(cam_g.K[0, 0, 0])
     t_round = run_halfdepth(domain) * mid / fx * INFLATION
     # inflate where the mask reaches beyond the body (loose clothing, hair, objects), not where it hugs it
     window = max(3, int(LOOSE_WINDOW * g) | 1)
     area = cv2.boxFilter(domain.astype(np.float32), -1, (window, window), normalize=False)
-    loose = cv2.boxFilter((domain & ~body).astype(np.float32), -1, (window, window), normalize=False)
+    # holes: pixels the body surrounds but does not cover (between an arm and the torso, a rasterisation gap)
+    # take the surrounding body's thickness; only what lies outside the body's outline is loose
+    holes = domain & ~body & ~outside_of(body)
+    loose = cv2.boxFilter((domain & ~body & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
     t_inflate = looseness * t_round
     border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
-    half = np.where(border, 0.0, np.maximum(t_body, t_inflate))
+    t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
+    half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
 
     # vertices: front sheet on every domain pixel, back sheet on interior pixels (border shared in position)
     rows, cols = np.nonzero(domain)

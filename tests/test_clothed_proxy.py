@@ -170,3 +170,45 @@ def test_the_run_says_what_it_guessed(tmp_path, case, expected):
         assert any(text in w for w in proxy.warnings), proxy.warnings
     if case == "gown":
         assert not any("seated" in w for w in proxy.warnings), proxy.warnings
+
+
+def test_outside_of_keeps_enclosed_holes_apart():
+    from humanvdm_core.clothed_proxy import outside_of
+
+    ring = np.zeros((30, 30), bool)
+    ring[5:25, 5:25] = True
+    ring[10:20, 10:20] = False  # a hole the ring encloses
+    out = outside_of(ring)
+    assert out[0, 0] and out[29, 15] and not out[15, 15] and not out[7, 7]
+
+
+def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
+    """A 0.6 m "arm" pointing at the camera from the front of a cylinder "torso": in the proxy it stands
+    at most ARM_REACH out of the torso; the torso's own depth is kept."""
+    import trimesh
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import ARM_REACH, build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    v, f, w, _ = _cylinder_body()
+    arm = trimesh.creation.box(extents=(0.08, 0.08, 0.6))
+    arm.apply_translation((0.0, 0.1, 0.15 + 0.3))  # from the torso's front surface (z = 0.15) towards the camera
+    va, fa = np.asarray(arm.vertices, np.float64), np.asarray(arm.faces, np.int64) + len(v)
+    verts, faces = np.concatenate([v, va]), np.concatenate([f, fa])
+    weights = np.zeros((len(verts), 3))
+    weights[: len(v), :2] = w
+    weights[len(v):, 2] = 1.0
+    names = ["spine01", "head", "lowerarm01.L"]
+    size = 128
+    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
+    proxy = build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
+                                grid=size)
+    z = proxy.mesh.vertices[:, 2]  # the subject faces +z, the camera is on +z
+    assert z.max() <= 0.15 + ARM_REACH + 0.02, z.max()  # was 0.75 (the arm's tip)
+    assert z.max() >= 0.15 + ARM_REACH - 0.03
+    torso = proxy.front & (np.abs(proxy.mesh.vertices[:, 1] + 0.4) < 0.05)  # the torso's front well below the arm
+    assert abs(float(np.median(z[torso])) - 0.15) < 0.03
