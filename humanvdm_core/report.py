@@ -241,7 +241,8 @@ def write_run_report(store_root: str | Path, subject: str, store_flag: str | Non
         tl = json.loads(log_path.read_text())
         s = tl.get("settings") or {}
         P.append(f"<p>splat-optimize preset <b>{_esc(s.get('preset', '?'))}</b>: {tl.get('num_gaussians', '?'):,} "
-                 f"Gaussians (UV {s.get('uv_resolution', '?')}²), {s.get('iterations', '?')} iterations at "
+                 f"Gaussians ({_esc(tl.get('template') or 'UV ' + str(s.get('uv_resolution', '?')) + '²')}), "
+                 f"{s.get('iterations', '?')} iterations at "
                  f"{s.get('train_resolution', '?')}² on {_esc(tl.get('device', '?'))}; training PSNR "
                  f"{_num(tl.get('train_psnr'))} dB (against its own training frames).</p>")
     total = sum(float(e.get("wall_s") or 0) for e in stages.values())

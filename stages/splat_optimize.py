@@ -1,16 +1,29 @@
-"""Stage ``splat-optimize`` (paper section 3.3 + supplement): fit a body-anchored Gaussian human to the frames.
+"""Stage ``splat-optimize`` (paper section 3.3 + supplement): fit skinned 3D Gaussians to the frames.
 
 Inputs: ``frames`` (a frame set, normally the 81-frame 1080² interpolated orbit; every frame is a training
-view) and ``body`` (``body.npz`` from ``fit-smpl``, schema ``humanvdm.body_fit`` v1). The model and the loss
-are :mod:`humanvdm_core.splat.human`'s: one Gaussian per valid UV texel of the body (``uv_resolution``²
-map; the UV map is rebuilt from the body model when it differs from the fit's), a feature tensor + MLP
-decoder for offsets / colours / scales, LBS posing with joint pose refinement, 0.8 L1 + 0.2 (1 - SSIM)
-(+ 0.2 LPIPS with ``lpips_weights``) + 10 offset² + 1 scale² + 1 feature², Adam lr 3e-3, 2 views a batch.
+view), ``body`` (``body.npz`` from ``fit-smpl``, schema ``humanvdm.body_fit`` v1) and, optionally, ``orbit``
+(diffuse's orbit, for the clothed proxy ``proxy.npz`` beside it). The model and the loss are
+:mod:`humanvdm_core.splat.human`'s; where the Gaussians start is ``template``
+(:mod:`humanvdm_core.splat.template`):
 
-Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``uv_resolution`` /
-``train_resolution`` / ``iterations`` / ``tile_size`` unless those params are set (non-zero):
-``tiny`` (64 -> ~2.6k Gaussians, 64², 100 iterations: tests), ``cpu`` (a CPU run of minutes),
-``full`` (paper size: ~203k Gaussians, 1080², for a GPU with gsplat).
+- ``subject`` (``auto``'s choice): ``subject_points`` points on the subject's own surface -- the clothed
+  proxy when the orbit has one, else the visual hull of the frames' silhouettes merged with the body --
+  each skinned and un-posed with its nearest body vertex, so a dress, a coat, long hair or a held object
+  has Gaussians of its own;
+- ``body``: one Gaussian per valid UV texel of the body (``uv_resolution``² map), as the paper.
+
+Colours start in closed form (``init_colors``: the frames projected onto the Gaussians with a visibility
+test and averaged; Gaussians no frame sees are dropped), so the first step already shows the person.
+Then: a per-Gaussian feature + MLP decoder for offsets / colour residuals / scales, learned opacities
+(``learn_opacity``), LBS posing with joint pose refinement, 0.8 L1 + 0.2 (1 - SSIM) (+ 0.2 LPIPS with
+``lpips_weights``) + 10 offset² + 1 scale² + 1 feature², Adam lr 3e-3, 2 views a batch, the first steps
+at half resolution, and (``densify``) pruning and splitting at the preset's steps, so the count
+follows the subject; the counts go to ``train_log.json``.
+
+Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``subject_points`` / ``uv_resolution`` /
+``train_resolution`` / ``iterations`` / ``tile_size`` unless those params are set (non-zero), and the
+coarse share, the densify steps and the cap on the count (see :data:`humanvdm_core.splat.human.PRESETS`):
+``tiny`` (tests), ``cpu`` (a CPU run of minutes), ``full`` (paper size, for a GPU with gsplat).
 
 Output ``gaussians``:
 
@@ -24,7 +37,8 @@ Output ``gaussians``:
 - ``point_cloud.splat``: the same Gaussians in the compact web ``.splat`` format (32 bytes each, same axes);
 - ``turntable/NNNN.png`` (``turntable_views`` views at ``turntable_size``², on the input orbit's
   elevation and radius) and ``turntable.gif``, for people (``turntable_views=0`` skips them);
-- ``train_log.json``: loss curve, wall time, final training PSNR, resolved settings.
+- ``train_log.json``: loss curve, final training PSNR, resolved settings, the template, the Gaussian counts
+  (initial, after each densify step, final); no timings (those are the lockfile's).
 
 Deterministic: same inputs + params + seed -> identical ``gaussians.npz`` and PLY bytes on one machine.
 """
@@ -35,15 +49,28 @@ from humanvdm_core.stage import Param, StageContext, StageSpec
 
 SPEC = StageSpec(
     name="splat-optimize",
-    summary="Fit body-anchored 3D Gaussians (UV position map + features + MLP decoder) to the orbit frames.",
+    summary="Fit skinned 3D Gaussians (on the subject's surface or the body's UV map; features + MLP decoder) "
+            "to the orbit frames.",
     inputs={"frames": "frame set (RGBA frames + cameras), normally the 81-frame interpolated orbit",
-            "body": "body fit directory holding body.npz (fit-smpl)"},
+            "body": "body fit directory holding body.npz (fit-smpl)",
+            "orbit": "diffuse's orbit; its proxy.npz (the clothed proxy), when present, is the subject template"},
+    optional=("orbit",),
     outputs={"gaussians": "gaussians.npz, point_cloud.ply (3DGS), point_cloud.splat, turntable/ + turntable.gif, "
                           "train_log.json"},
     params={
         "preset": Param("auto", "size/quality preset (auto: full with CUDA, else cpu)",
                         choices=("auto", "tiny", "cpu", "full")),
-        "uv_resolution": Param(0, "UV map size R (Gaussian count ~0.62 R^2); 0: from the preset"),
+        "template": Param("auto", "where the Gaussians start: subject (the clothed proxy diffuse wrote, else the "
+                                  "visual hull of the frames, merged with the body), body (one per texel of the body's "
+                                  "UV map, as the paper), auto (subject)", choices=("auto", "subject", "body")),
+        "subject_points": Param(0, "Gaussians the subject template starts with; 0: from the preset"),
+        "uv_resolution": Param(0, "body template: UV map size R (Gaussian count ~0.62 R^2); 0: from the preset"),
+        "init_colors": Param(True, "initialise colours in closed form (the frames projected onto the Gaussians, "
+                                   "visibility-tested, averaged), so training starts from the person"),
+        "densify": Param(True, "prune transparent Gaussians and split those the renders miss, at the preset's "
+                               "densify steps (up to its max_gaussians)"),
+        "learn_opacity": Param(True, "optimise each Gaussian's opacity (False: opacity 1, as the paper)"),
+        "split_residual": Param(0.1, "render error (mean |colour| + |alpha|) above which a Gaussian is split"),
         "train_resolution": Param(0, "training image size in pixels; 0: from the preset"),
         "iterations": Param(0, "optimiser steps; 0: from the preset"),
         "tile_size": Param(0, "rasterizer tile size; 0: from the preset"),
@@ -83,7 +110,7 @@ def resolve_settings(p: dict, cuda: bool) -> dict:
 
     name = p["preset"] if p["preset"] != "auto" else ("full" if cuda else "cpu")
     out = {"preset": name, **PRESETS[name]}
-    for key in ("uv_resolution", "train_resolution", "iterations", "tile_size"):
+    for key in ("uv_resolution", "subject_points", "train_resolution", "iterations", "tile_size"):
         if p[key] < 0:
             raise ConfigError(f"param {key} must be >= 0, got {p[key]}")
         if p[key] > 0:
@@ -103,6 +130,7 @@ def run(ctx: StageContext) -> None:
     from humanvdm_core.frames import read_cameras
     from humanvdm_core.io import write_npz, write_png
     from humanvdm_core.splat import human as H
+    from humanvdm_core.splat.template import init_colors, start_anchor
 
     p = ctx.params
     cuda = torch.cuda.is_available()
@@ -120,17 +148,26 @@ def run(ctx: StageContext) -> None:
     anchor = H.load_body_anchor(body_path, s["uv_resolution"], load_model=p["refine_pose"])
     views = H.load_views(ctx.inputs["frames"], s["train_resolution"])
     cameras = read_cameras(ctx.inputs["frames"])
-    ctx.log.info("preset %s: %d Gaussians (UV %d²), %d views at %d², %d iterations on %s", s["preset"],
-                 len(anchor.rows), s["uv_resolution"], len(views.images), s["train_resolution"], s["iterations"],
-                 device.type)
+    proxy = ctx.inputs["orbit"] / "proxy.npz" if "orbit" in ctx.inputs else None
+    anchor, template = start_anchor(anchor, views, p["template"], s["subject_points"], proxy, p["seed"])
+    ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d², %d iterations on %s", s["preset"], template,
+                 len(anchor.positions), len(views.images), s["train_resolution"], s["iterations"], device.type)
     human = H.GaussianHuman(anchor, feature_dim=p["feature_dim"], hidden=p["hidden"], scale_mode=p["scale_mode"],
-                            refine_pose=p["refine_pose"], seed=p["seed"], min_scale=p["min_scale"]).to(device)
+                            refine_pose=p["refine_pose"], seed=p["seed"], min_scale=p["min_scale"],
+                            learn_opacity=p["learn_opacity"]).to(device)
+    initial = human.num_gaussians
+    if p["init_colors"]:
+        unseen = init_colors(human, views)
+        ctx.log.info("colours from %d views in closed form; %d Gaussians no view sees pruned", len(views.images),
+                     unseen)
     config = H.FitConfig(
         iterations=s["iterations"], lr=p["lr"], pose_lr=p["pose_lr"], batch_views=p["batch_views"],
         l1_weight=p["l1_weight"], ssim_weight=p["ssim_weight"], lpips_weight=p["lpips_weight"],
         lpips_weights=p["lpips_weights"], offset_weight=p["offset_weight"], scale_weight=p["scale_weight"],
         feature_weight=p["feature_weight"], mask_weight=p["mask_weight"], seed=p["seed"],
-        tile_size=s["tile_size"], log_every=max(1, s["iterations"] // 50))
+        tile_size=s["tile_size"], log_every=max(1, s["iterations"] // 50), coarse_fraction=s["coarse_fraction"],
+        densify_at=tuple(s["densify_at"]) if p["densify"] else (), max_gaussians=s["max_gaussians"],
+        split_residual=p["split_residual"])
     result = H.fit_gaussians(human, views, config, log=ctx.log.info)  # progress in the stage log
     ctx.log.info("trained in %.1f s: loss %.4f -> %.4f, training PSNR %.2f dB", result.wall_s,
                  result.losses[0] if result.losses else float("nan"),
@@ -154,7 +191,8 @@ def run(ctx: StageContext) -> None:
         frames = [Image.fromarray(np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)) for img in images]
         frames[0].save(out / "turntable.gif", save_all=True, append_images=frames[1:], duration=80, loop=0)
     H.write_train_log(out / "train_log.json", result, {
-        "settings": s, "num_gaussians": human.num_gaussians, "num_views": int(len(views.images)),
+        "settings": s, "template": template, "initial_gaussians": initial, "densify_steps": result.counts,
+        "num_gaussians": human.num_gaussians, "num_views": int(len(views.images)),
         "device": device.type, "refined_pose_max_abs_rad": float(human.delta_pose.detach().abs().max()),
         "refined_transl": [round(float(v), 6) for v in human.delta_transl.detach().cpu()]})
 

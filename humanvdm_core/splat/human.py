@@ -1,19 +1,21 @@
-"""The body-anchored Gaussian human (paper section 3.3 + supplement; GaussianAvatar-style) and its fitting.
+"""The skinned Gaussian human (paper section 3.3 + supplement; GaussianAvatar-style) and its fitting.
 
 Model (:class:`GaussianHuman`):
 
-- one Gaussian per valid texel of the fitted body's UV position map (resolution R, M valid texels);
-  its anchor is the texel's surface point on the *canonical* body (da-pose, fitted shape) and its
-  skinning weights are the body's, interpolated to the texel;
-- an optimisable feature tensor (C x R x R), read at the valid texels and concatenated with the
-  canonical position map (3 channels), goes through a small decoder (equivalent to 1x1 convolutions:
-  a per-texel MLP) that predicts an offset (3, metres), a colour (3, sRGB in [0, 1], sigmoid) and a
-  scale (1 isotropic or 3 anisotropic; ``base * exp(out)`` where ``base`` is the texel's 3D spacing,
-  ``out`` clamped to [log(min_scale), 3]: with ``min_scale`` 0.5 neighbouring Gaussians keep
-  overlapping, so the surface stays closed when viewed at a higher resolution than it was trained at
-  -- measured on a synthetic subject, cpu preset: +2.3 dB PSNR against its training video at 512²,
-  -1.4 dB at 256², +0.5 dB against the truth at 512²);
-- opacity is fixed to 1 and the canonical rotation is the identity (as GaussianAvatar);
+- Gaussians start on a template (:class:`BodyAnchor`): the paper's one per valid texel of the fitted
+  body's UV position map (resolution R), or points on the subject's own surface
+  (:mod:`humanvdm_core.splat.template`: the clothed proxy or the visual hull). Each has a *canonical*
+  anchor (da-pose, fitted shape), skinning weights (the body's, interpolated to the texel or copied
+  from the nearest body vertex) and a base scale (its 3D spacing to its neighbours);
+- per Gaussian an optimisable feature vector (C), concatenated with its normalised canonical position,
+  goes through a small decoder (a per-Gaussian MLP, as 1x1 convolutions over a UV map) that predicts an
+  offset (3, metres), a colour residual (3: colour = sigmoid(colour logit + residual), the logit set in
+  closed form from the frames by :meth:`GaussianHuman.set_colors`) and a scale (1 isotropic or 3
+  anisotropic; ``base * exp(out)``, ``out`` clamped to [log(min_scale), 3]: with ``min_scale`` 0.5
+  neighbouring Gaussians keep overlapping, so the surface stays closed when viewed at a higher
+  resolution than it was trained at);
+- opacity: a learned per-Gaussian logit (``learn_opacity``), or fixed to 1 as the paper; the canonical
+  rotation is the identity (as GaussianAvatar);
 - canonical Gaussians ``x_c = anchor + offset`` are posed by linear blend skinning with the body's
   bone transforms at the refined pose (``pose + delta_pose``, ``transl + delta_transl``, both
   optimised jointly with the Gaussians), un-posed from the canonical transforms; each Gaussian is
@@ -22,8 +24,12 @@ Model (:class:`GaussianHuman`):
 Fitting (:func:`fit_gaussians`): Adam (lr 3e-3) on batches of ``batch_views`` training views in a
 seeded, fixed order; loss ``0.8 L1 + 0.2 (1 - SSIM) [+ 0.2 LPIPS] + 10 |offset|^2 + 1 |scale|^2 +
 1 |feature|^2`` (means over Gaussians / feature entries; offsets and scales in world units),
-renders composited over the frame set's background colour. Deterministic for a seed on one machine
-(single-threaded torch gives identical bytes).
+renders composited over the frame set's background colour. Coarse to fine: the first
+``coarse_fraction`` of the steps train on half-resolution views. At each ``densify_at`` share of the
+steps the set adapts to the scene (:func:`densify`): Gaussians whose learned opacity fell below
+``prune_opacity`` are dropped and those whose render error (|colour| + |alpha| where they are visible)
+exceeds ``split_residual`` are split in two, up to ``max_gaussians``. Deterministic for a seed on one
+machine (single-threaded torch gives identical bytes).
 
 Export: :func:`gaussians_arrays` (the ``humanvdm.gaussians`` v1 NPZ members, in our world: y up, the
 subject facing +z, metres) and :func:`write_ply` / :func:`read_ply` (the standard 3DGS binary PLY:
@@ -53,13 +59,17 @@ GAUSSIANS_SCHEMA = "humanvdm.gaussians"
 GAUSSIANS_VERSION = 1
 BODY_SCHEMA = "humanvdm.body_fit"
 SH_C0 = 0.28209479177387814
+INITIAL_SCALE = 0.6  # a Gaussian's starting scale as a fraction of its base spacing (crisp, still overlapping)
 OPACITY_EPS = 1e-6  # opacity 1 is stored as logit(1 - eps) in the PLY
 
 # preset -> settings; Gaussians on Anny's UV layout: R=64 -> 2,558, 128 -> 10,253, 569 -> 202,521 (paper: 202,738)
-PRESETS: dict[str, dict[str, int]] = {
-    "tiny": {"uv_resolution": 64, "train_resolution": 64, "iterations": 100, "tile_size": 4},
-    "cpu": {"uv_resolution": 128, "train_resolution": 192, "iterations": 500, "tile_size": 8},
-    "full": {"uv_resolution": 569, "train_resolution": 1080, "iterations": 30000, "tile_size": 16},
+PRESETS: dict[str, dict[str, Any]] = {
+    "tiny": {"uv_resolution": 64, "subject_points": 2500, "train_resolution": 64, "iterations": 100, "tile_size": 4,
+             "coarse_fraction": 0.0, "densify_at": (0.5,), "max_gaussians": 5000},
+    "cpu": {"uv_resolution": 128, "subject_points": 8000, "train_resolution": 192, "iterations": 500, "tile_size": 8,
+            "coarse_fraction": 0.3, "densify_at": (0.3, 0.6), "max_gaussians": 30000},
+    "full": {"uv_resolution": 569, "subject_points": 100000, "train_resolution": 1080, "iterations": 30000,
+             "tile_size": 16, "coarse_fraction": 0.1, "densify_at": (0.1, 0.2, 0.3, 0.4, 0.5), "max_gaussians": 500000},
 }
 
 
@@ -81,6 +91,9 @@ class BodyAnchor:
     backend: str = "anny"
     topology: str = "anny"
     model: Any = None  # the body model (for pose refinement), or None
+    spacing: np.ndarray | None = None  # (M,) base scale per point; None: the UV texel spacing
+    body_vertices: np.ndarray | None = None  # (V, 3) the fitted body, posed (for the subject template)
+    body_weights: np.ndarray | None = None  # (V, J) its skinning weights
 
 
 def load_body_anchor(path: str | Path, uv_resolution: int | None = None, load_model: bool = True) -> BodyAnchor:
@@ -131,7 +144,9 @@ def load_body_anchor(path: str | Path, uv_resolution: int | None = None, load_mo
         resolution=R, rows=rows, cols=cols, positions=positions, weights=weights,
         params=BodyParams.from_numpy(d), bone_transforms=d["bone_transforms"].astype(np.float32),
         canonical_bone_transforms=d["canonical_bone_transforms"].astype(np.float32),
-        backend=backend, topology=topology, model=model)
+        backend=backend, topology=topology, model=model,
+        body_vertices=d["vertices"].astype(np.float32) if "vertices" in d else None,
+        body_weights=d["skinning_weights"].astype(np.float32))
 
 
 def texel_spacing(rows: np.ndarray, cols: np.ndarray, positions: np.ndarray, resolution: int) -> np.ndarray:
@@ -208,41 +223,61 @@ class GaussianSet:
 
 
 class GaussianHuman(torch.nn.Module):
-    """UV-anchored Gaussians with a feature tensor + MLP decoder and a refinable body pose."""
+    """Body-skinned Gaussians with per-Gaussian features + an MLP decoder and a refinable body pose.
+
+    Per Gaussian: a canonical anchor, skinning weights, a base scale, a feature vector, a colour logit
+    (the decoder's colour output is added to it: :meth:`set_colors` initialises it in closed form) and,
+    with ``learn_opacity``, an opacity logit (else the opacity is fixed to 1, as the paper).
+    :meth:`prune` and :meth:`split` change the set; an optimiser must be rebuilt afterwards."""
+
+    PER_GAUSSIAN_BUFFERS = ("rows", "cols", "anchors", "weights", "base_scale", "canonical_inverse")
+    PER_GAUSSIAN_PARAMS = ("features", "color_logit", "opacity_logit")
 
     def __init__(self, anchor: BodyAnchor, feature_dim: int = 16, hidden: int = 64, layers: int = 3,
-                 scale_mode: str = "isotropic", refine_pose: bool = True, seed: int = 0, min_scale: float = 0.5):
+                 scale_mode: str = "isotropic", refine_pose: bool = True, seed: int = 0, min_scale: float = 0.5,
+                 learn_opacity: bool = False, initial_opacity: float = 0.95):
         super().__init__()
         if scale_mode not in ("isotropic", "anisotropic"):
             raise ConfigError(f"scale_mode must be 'isotropic' or 'anisotropic', got {scale_mode!r}")
         if not 0.0 <= min_scale <= 1.0:
             raise ConfigError(f"min_scale must be in [0, 1] (a fraction of the texel spacing), got {min_scale}")
+        if not 0.0 < initial_opacity < 1.0:
+            raise ConfigError(f"initial_opacity must be in (0, 1), got {initial_opacity}")
         # the decoder's log-scale is kept in [log(min_scale), 3]: a Gaussian cannot shrink below
-        # min_scale x its texel's spacing, so neighbours keep overlapping at any viewing resolution
+        # min_scale x its base spacing, so neighbours keep overlapping at any viewing resolution
         self.min_log_scale = math.log(min_scale) if min_scale > 0 else -6.0
         if refine_pose and anchor.model is None:
             raise ConfigError("pose refinement needs the body model (load_body_anchor(load_model=True))")
         self.scale_mode = scale_mode
         self.refine_pose = refine_pose
+        self.learn_opacity = learn_opacity
         self.body_model = anchor.model if refine_pose else None
-        R = anchor.resolution
+        self.resolution = int(anchor.resolution)  # the UV map's size (0: not on a UV map)
         gen = torch.Generator().manual_seed(int(seed))
+        self._gen = gen
         self.register_buffer("rows", torch.as_tensor(anchor.rows, dtype=torch.int64))
         self.register_buffer("cols", torch.as_tensor(anchor.cols, dtype=torch.int64))
         self.register_buffer("anchors", torch.as_tensor(anchor.positions, dtype=torch.float32))
         self.register_buffer("weights", torch.as_tensor(anchor.weights, dtype=torch.float32))
-        spacing = texel_spacing(anchor.rows, anchor.cols, anchor.positions, R)
-        self.register_buffer("base_scale", torch.as_tensor(spacing)[:, None])
+        spacing = anchor.spacing if anchor.spacing is not None else texel_spacing(
+            anchor.rows, anchor.cols, anchor.positions, anchor.resolution)
+        self.register_buffer("base_scale", torch.as_tensor(np.asarray(spacing, np.float32))[:, None])
         # per-Gaussian inverse of the blended canonical transform (constant)
         canon = torch.as_tensor(anchor.canonical_bone_transforms, dtype=torch.float32)
+        self.register_buffer("canonical_bones", canon)
         self.register_buffer("canonical_inverse", torch.linalg.inv(blend_transforms(self.weights, canon[None])[0]))
         self.register_buffer("fitted_transforms", torch.as_tensor(anchor.bone_transforms, dtype=torch.float32))
         self.params0 = anchor.params.to(dtype=torch.float32)
-        # normalised canonical positions as decoder input (centred, unit-ish range)
+        # normalised canonical positions as decoder input (centred, unit-ish range; fixed at construction)
         centre = self.anchors.mean(0)
         extent = float((self.anchors - centre).abs().max())
-        self.register_buffer("position_input", (self.anchors - centre) / max(extent, 1e-6))
-        self.features = torch.nn.Parameter(torch.randn(feature_dim, R, R, generator=gen) * 0.01)
+        self.register_buffer("position_centre", centre)
+        self.position_extent = max(extent, 1e-6)
+        m = self.anchors.shape[0]
+        self.features = torch.nn.Parameter(torch.randn(m, feature_dim, generator=gen) * 0.01)
+        self.color_logit = torch.nn.Parameter(torch.zeros(m, 3))
+        logit = math.log(initial_opacity / (1.0 - initial_opacity))
+        self.opacity_logit = torch.nn.Parameter(torch.full((m,), logit), requires_grad=learn_opacity)
         n_out = 3 + 3 + (1 if scale_mode == "isotropic" else 3)
         dims = [feature_dim + 3] + [hidden] * (layers - 1) + [n_out]
         mlp: list[torch.nn.Module] = []
@@ -256,8 +291,9 @@ class GaussianHuman(torch.nn.Module):
             if i < len(dims) - 2:
                 mlp.append(torch.nn.ReLU())
         self.decoder = torch.nn.Sequential(*mlp)
-        with torch.no_grad():  # start small: offsets ~0, colour grey, scale = texel spacing
+        with torch.no_grad():  # start small: offsets ~0, colour = the colour logit's, scale ~ INITIAL_SCALE x spacing
             self.decoder[-1].weight.mul_(0.1)
+            self.decoder[-1].bias[6:] = math.log(max(INITIAL_SCALE, min_scale))
         n_pose = int(anchor.params.pose.shape[1])
         self.delta_pose = torch.nn.Parameter(torch.zeros(n_pose, 3))
         self.delta_transl = torch.nn.Parameter(torch.zeros(3))
@@ -269,9 +305,10 @@ class GaussianHuman(torch.nn.Module):
     def num_gaussians(self) -> int:
         return int(self.anchors.shape[0])
 
-    def texel_features(self) -> torch.Tensor:
-        """(M, C) the feature tensor at the valid texels."""
-        return self.features[:, self.rows, self.cols].T
+    @property
+    def position_input(self) -> torch.Tensor:
+        """(M, 3) the decoder's position input: canonical anchors centred and scaled."""
+        return (self.anchors - self.position_centre) / self.position_extent
 
     def bone_transforms(self) -> torch.Tensor:
         """(J, 4, 4) bone transforms at the refined pose."""
@@ -283,9 +320,9 @@ class GaussianHuman(torch.nn.Module):
         return self.body_model(params).bone_transforms[0]
 
     def forward(self) -> GaussianSet:
-        out = self.decoder(torch.cat([self.texel_features(), self.position_input], dim=1))
+        out = self.decoder(torch.cat([self.features, self.position_input], dim=1))
         offsets = out[:, 0:3]
-        colors = torch.sigmoid(out[:, 3:6])
+        colors = torch.sigmoid(self.color_logit + out[:, 3:6])
         log_scale = out[:, 6:].clamp(self.min_log_scale, 3.0)
         canonical = self.anchors + offsets
         A = blend_transforms(self.weights, self.bone_transforms()[None])[0] @ self.canonical_inverse  # (M, 4, 4)
@@ -298,9 +335,56 @@ class GaussianHuman(torch.nn.Module):
             quats[:, 0] = 1.0  # rotation is irrelevant for isotropic Gaussians
         else:
             quats = matrix_to_quat(linear / body_scale[:, None, None])
-        opacities = torch.ones(self.num_gaussians, dtype=means.dtype, device=means.device)
+        if self.learn_opacity:
+            opacities = torch.sigmoid(self.opacity_logit)
+        else:
+            opacities = torch.ones(self.num_gaussians, dtype=means.dtype, device=means.device)
         return GaussianSet(means=means, quats=quats, scales=scales.contiguous(), opacities=opacities,
                            colors=colors, canonical_means=canonical, offsets=offsets)
+
+    def set_colors(self, colors: np.ndarray | torch.Tensor) -> None:
+        """Initialise the colour logits so that, with the decoder's colour output near 0, the Gaussians
+        show ``colors`` (M, 3) in [0, 1]."""
+        c = torch.as_tensor(colors, dtype=torch.float32, device=self.anchors.device).clamp(0.02, 0.98)
+        with torch.no_grad():
+            self.color_logit.copy_(torch.log(c / (1.0 - c)))
+
+    def _reindex(self, index: torch.Tensor) -> None:
+        """Keep (and repeat) the Gaussians at ``index``: every per-Gaussian buffer and parameter."""
+        index = index.to(self.anchors.device)
+        for name in self.PER_GAUSSIAN_BUFFERS:
+            setattr(self, name, getattr(self, name)[index].clone())
+        for name in self.PER_GAUSSIAN_PARAMS:
+            old = getattr(self, name)
+            setattr(self, name, torch.nn.Parameter(old.detach()[index].clone(), requires_grad=old.requires_grad))
+
+    def prune(self, keep: torch.Tensor) -> int:
+        """Drop the Gaussians where ``keep`` (M,) is False; returns how many were dropped."""
+        keep = keep.to(self.anchors.device)
+        dropped = int((~keep).sum())
+        if dropped:
+            self._reindex(torch.nonzero(keep)[:, 0])
+        return dropped
+
+    def split(self, selected: torch.Tensor, shrink: float = 0.7) -> int:
+        """Replace each selected Gaussian (``selected`` (M,) bool) by two, half a base spacing either side
+        of it along a seeded random direction, their base scales ``shrink`` times its; returns how many
+        were added."""
+        idx = torch.nonzero(selected.to(self.anchors.device))[:, 0]
+        if len(idx) == 0:
+            return 0
+        n = self.num_gaussians
+        self._reindex(torch.cat([torch.arange(n, device=idx.device), idx]))
+        direction = torch.randn(len(idx), 3, generator=self._gen).to(self.anchors.device)
+        direction = direction / direction.norm(dim=1, keepdim=True).clamp_min(1e-9)
+        step = 0.5 * self.base_scale[idx] * direction
+        children = torch.arange(n, n + len(idx), device=idx.device)
+        with torch.no_grad():
+            self.anchors[idx] += step
+            self.anchors[children] -= step
+            self.base_scale[idx] *= shrink
+            self.base_scale[children] *= shrink
+        return int(len(idx))
 
 
 # ----------------------------------------------------------------------------- image losses
@@ -445,10 +529,20 @@ class FitConfig:
     seed: int = 0
     tile_size: int = 16
     log_every: int = 25
+    coarse_fraction: float = 0.0  # the first share of the iterations trains on half-resolution views
+    densify_at: tuple[float, ...] = ()  # shares of the iterations after which to prune and split
+    prune_opacity: float = 0.05  # Gaussians below this opacity are pruned (learned opacity only)
+    split_residual: float = 0.1  # mean |render - frame| (colour + alpha) above which a Gaussian is split
+    max_gaussians: int = 0  # cap on the count after splitting (0: none)
+    densify_views: int = 8  # evenly spaced views whose residuals decide the splits
 
     def check(self) -> None:
         if self.iterations < 0:
             raise ConfigError(f"iterations must be >= 0, got {self.iterations}")
+        if not 0.0 <= self.coarse_fraction < 1.0:
+            raise ConfigError(f"coarse_fraction must be in [0, 1), got {self.coarse_fraction}")
+        if any(not 0.0 < f < 1.0 for f in self.densify_at):
+            raise ConfigError(f"densify_at must hold shares in (0, 1), got {self.densify_at}")
         if self.batch_views < 1:
             raise ConfigError(f"batch_views must be >= 1, got {self.batch_views}")
         if self.lr <= 0 or self.pose_lr < 0:
@@ -462,6 +556,7 @@ class FitResult:
     wall_s: float = 0.0
     train_psnr: float = float("nan")
     config: dict = field(default_factory=dict)
+    counts: list[dict] = field(default_factory=list)  # per densify step: iteration, pruned, split, count
 
 
 def view_order(n_views: int, iterations: int, batch: int, seed: int) -> list[list[int]]:
@@ -493,27 +588,104 @@ def training_loss(human: GaussianHuman, views: TrainingViews, ids: torch.Tensor,
     return loss + config.feature_weight * (human.features ** 2).mean()
 
 
+def half_views(views: TrainingViews) -> TrainingViews:
+    """``views`` at half resolution (2x2 box filter; intrinsics halved, so pixel centres stay aligned)."""
+    import torch.nn.functional as F
+
+    if views.size % 2:
+        return views
+    K = views.K.clone()
+    K[:, :2, :] *= 0.5
+    return TrainingViews(F.avg_pool2d(views.images.permute(0, 3, 1, 2), 2).permute(0, 2, 3, 1).contiguous(),
+                         F.avg_pool2d(views.alphas[:, None], 2)[:, 0], views.w2c, K, views.size // 2, views.background)
+
+
+def make_optimizer(human: GaussianHuman, config: FitConfig) -> torch.optim.Optimizer:
+    """Adam over the per-Gaussian parameters and the decoder (``lr``) and the pose refinement (``pose_lr``)."""
+    params = [human.features, human.color_logit, *human.decoder.parameters()]
+    if human.learn_opacity:
+        params.append(human.opacity_logit)
+    groups = [{"params": params, "lr": config.lr}]
+    if human.refine_pose and config.pose_lr > 0:
+        groups.append({"params": [human.delta_pose, human.delta_transl], "lr": config.pose_lr})
+    return torch.optim.Adam(groups)
+
+
+def gaussian_residuals(human: GaussianHuman, views: TrainingViews, ids: list[int], tile_size: int) -> torch.Tensor:
+    """(M,) each Gaussian's mean render error over the views ``ids`` where it is visible: |colour| (mean
+    over channels) + |alpha| at the pixel its centre projects to; 0 where no view sees it."""
+    from humanvdm_core.splat.template import visibility, zbuffer_size
+
+    S = views.size
+    zsize = zbuffer_size(human.num_gaussians, float(views.alphas[ids].mean()), S)
+    with torch.no_grad():
+        gs = human()
+        means = gs.means.cpu().numpy().astype(np.float64)
+        total = np.zeros(len(means))
+        count = np.zeros(len(means))
+        for i in ids:
+            pred, alpha = render(gs, views.w2c[i:i + 1], views.K[i:i + 1], S, S, views.background, tile_size)
+            err = ((pred[0] - views.images[i]).abs().mean(-1) + (alpha[0] - views.alphas[i]).abs()).cpu().numpy()
+            vis, uv = visibility(means, views.w2c[i].cpu().numpy().astype(np.float64),
+                                 views.K[i].cpu().numpy().astype(np.float64), S, zsize)
+            px = np.clip(np.floor(uv[vis]).astype(np.int64), 0, S - 1)
+            total[vis] += err[px[:, 1], px[:, 0]]
+            count[vis] += 1
+    return torch.as_tensor(total / np.maximum(count, 1), dtype=torch.float32)
+
+
+def densify(human: GaussianHuman, views: TrainingViews, config: FitConfig) -> dict:
+    """Prune transparent Gaussians (learned opacity below ``prune_opacity``) and split those whose render
+    error exceeds ``split_residual`` (worst first, up to ``max_gaussians``); returns the counts."""
+    pruned = 0
+    if human.learn_opacity:
+        with torch.no_grad():
+            keep = torch.sigmoid(human.opacity_logit) >= config.prune_opacity
+        if keep.sum() >= 16:
+            pruned = human.prune(keep)
+    n_views = len(views.images)
+    ids = sorted({int(round(i * n_views / config.densify_views)) % n_views for i in range(config.densify_views)})
+    residual = gaussian_residuals(human, views, ids, config.tile_size).to(human.anchors.device)
+    selected = residual > config.split_residual
+    if config.max_gaussians > 0:
+        room = max(0, config.max_gaussians - human.num_gaussians)
+        if int(selected.sum()) > room:
+            order = torch.argsort(residual, descending=True)
+            selected = torch.zeros_like(selected)
+            selected[order[:room]] = True
+    split = human.split(selected)
+    return {"pruned": pruned, "split": split, "count": human.num_gaussians}
+
+
 def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
                   log: Callable[[str], None] | None = None) -> FitResult:
-    """Optimise ``human`` (in place) against ``views``; returns the loss curve and timings. Progress goes to
-    the stage's progress channel (:func:`humanvdm_core.progress.report`)."""
+    """Optimise ``human`` (in place) against ``views``; returns the loss curve, the counts after each
+    densify step and timings. The first ``coarse_fraction`` of the iterations train on half-resolution
+    views; after each share in ``densify_at`` the set is pruned and split (:func:`densify`) and the
+    optimiser restarts. Progress goes to the stage's progress channel (:func:`humanvdm_core.progress.report`)."""
     from humanvdm_core.progress import report
 
     config.check()
     torch.manual_seed(config.seed)
     views = views.to(human.anchors.device)
+    coarse = half_views(views) if config.coarse_fraction > 0 else views
+    coarse_until = int(round(config.coarse_fraction * config.iterations))
+    densify_its = {int(round(f * config.iterations)) for f in config.densify_at}
     lpips = load_lpips_loss(config.lpips_weights) if config.lpips_weights else None
-    groups = [{"params": [human.features, *human.decoder.parameters()], "lr": config.lr}]
-    if human.refine_pose and config.pose_lr > 0:
-        groups.append({"params": [human.delta_pose, human.delta_transl], "lr": config.pose_lr})
-    opt = torch.optim.Adam(groups)
+    opt = make_optimizer(human, config)
     result = FitResult(config=asdict(config))
     batches = view_order(len(views.images), config.iterations, min(config.batch_views, len(views.images)),
                          config.seed)
     t0 = time.perf_counter()
     S, ts = views.size, config.tile_size
     for it, idx in enumerate(batches):
-        loss = training_loss(human, views, torch.as_tensor(idx), config, lpips)
+        if it in densify_its and it > 0:
+            counts = {"iteration": it, **densify(human, views, config)}
+            result.counts.append(counts)
+            opt = make_optimizer(human, config)
+            if log is not None:
+                log(f"iter {it:5d}: pruned {counts['pruned']}, split {counts['split']} -> {counts['count']} Gaussians")
+        loss = training_loss(human, coarse if it < coarse_until else views, torch.as_tensor(idx), config, lpips)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -524,13 +696,15 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
             if log is not None:
                 log(f"iter {it:5d}/{len(batches)}  loss {result.losses[-1]:.4f}  {time.perf_counter() - t0:.1f} s")
     result.wall_s = time.perf_counter() - t0
-    with torch.no_grad():
+    with torch.no_grad():  # training PSNR on up to 16 evenly spaced views
         gs = human()
         scores = []
-        for i in range(len(views.images)):
+        n = len(views.images)
+        ids = sorted({int(i * n / min(n, 16)) for i in range(min(n, 16))})
+        for k, i in enumerate(ids):
             pred, _ = render(gs, views.w2c[i:i + 1], views.K[i:i + 1], S, S, views.background, ts)
             scores.append(psnr(pred[0], views.images[i]))
-            report(i + 1, len(views.images), "views", "training PSNR")
+            report(k + 1, len(ids), "views", "training PSNR")
     result.train_psnr = float(np.mean(scores)) if scores else float("nan")
     return result
 
@@ -556,7 +730,7 @@ def gaussians_arrays(human: GaussianHuman, background: np.ndarray | None = None)
         "colors": gs.colors.clamp(0, 1).numpy().astype(f32), "canonical_means": gs.canonical_means.numpy().astype(f32),
         "skinning_weights": human.weights.cpu().numpy().astype(f32),
         "uv_rows": human.rows.cpu().numpy(), "uv_cols": human.cols.cpu().numpy(),
-        "uv_resolution": np.int64(human.features.shape[-1]),
+        "uv_resolution": np.int64(human.resolution),
         "pose": (p.pose + human.delta_pose.detach().cpu()[None]).numpy().astype(f32),
         "transl": (p.transl + human.delta_transl.detach().cpu()[None]).numpy().astype(f32),
         "bone_transforms": bones.numpy().astype(f32),
@@ -741,8 +915,10 @@ def render_views_np(human: GaussianHuman, cameras, background: np.ndarray, chunk
 def write_train_log(path: str | Path, result: FitResult, extra: dict) -> None:
     from humanvdm_core.io import atomic_write_text
 
+    # results only: the wall time is the lockfile's (an artifact holding timings would change on every
+    # rerun and defeat the early cutoff of the stages after it)
     doc = {"schema": "humanvdm.splat_train_log", "version": 1, "iterations": result.logged_iterations,
-           "loss": [round(v, 6) for v in result.losses], "wall_s": round(result.wall_s, 3),
+           "loss": [round(v, 6) for v in result.losses],
            "train_psnr": round(result.train_psnr, 3), "config": result.config, **extra}
     atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 

@@ -1,0 +1,259 @@
+"""Where the Gaussians start: the subject's own surface, and their colours in closed form.
+
+The body template (the paper's) puts one Gaussian on each texel of the fitted body's UV map: whatever
+lies off the naked body (a dress, a coat, long hair, a held object) has no Gaussian of its own. The
+subject template starts from the subject's surface instead:
+
+- the clothed proxy that ``diffuse`` wrote beside its orbit (``proxy.npz``, see
+  :mod:`humanvdm_core.clothed_proxy`): ``count`` points sampled uniformly by area on it
+  (:func:`proxy_points`);
+- else the visual hull of the training views' silhouettes (:func:`visual_hull_points`): a voxel grid
+  around the body carved by every view's mask, its surface voxels, merged with the fitted body's
+  points that lie deeper than :data:`HULL_CONCAVITY` voxels inside the hull (concavities no
+  silhouette can carve, e.g. between the arms and the torso).
+
+:func:`subject_anchor` turns such world points into a :class:`~humanvdm_core.splat.human.BodyAnchor`:
+each point takes the skinning weights of its nearest fitted-body vertex and is un-posed with them
+(inverse linear blend skinning), so pose refinement and LBS work as for the body template; its base
+scale is the mean distance to its :data:`KNN` nearest neighbours.
+
+:func:`project_colors` initialises every Gaussian's colour in closed form: each point is projected
+into every training view, kept where it is visible (its depth within :data:`VISIBLE_TOLERANCE` of a
+point z-buffer at :data:`ZBUFFER_SIZE` px) and inside the person's mask, and the frames' colours
+there are averaged. Points no view sees are reported (``seen == 0``) and take their nearest seen
+neighbour's colour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from humanvdm_core.errors import InputError
+
+KNN = 4
+HULL_RESOLUTION = 128  # voxels along the longest side of the carving box
+HULL_MARGIN = 0.25  # metres around the body's box that the hull may reach
+HULL_MISSES = 0.1  # share of the views whose mask may disagree before a voxel is carved away
+HULL_CONCAVITY = 3  # body points deeper than this many voxels inside the hull are added to it
+ZBUFFER_SIZE = 128  # largest z-buffer resolution of the visibility test ...
+POINTS_PER_CELL = 3  # ... which aims at this many points of the near surface per cell
+VISIBLE_TOLERANCE = 0.03  # metres behind the nearest point that still count as visible
+
+
+def posed_body(anchor) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted body's posed vertices (V, 3) and skinning weights (V, J) from a body anchor."""
+    if anchor.body_vertices is None or anchor.body_weights is None:
+        raise InputError("the body fit holds no vertices/skinning weights: the subject template needs them")
+    return np.asarray(anchor.body_vertices, np.float64), np.asarray(anchor.body_weights, np.float64)
+
+
+def nearest_index(points: np.ndarray, reference: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (P, k) of and distances (P, k) to the ``k`` nearest ``reference`` points of each point."""
+    p = torch.as_tensor(points, dtype=torch.float32)
+    r = torch.as_tensor(reference, dtype=torch.float32)
+    idx, dist = [], []
+    for chunk in p.split(4096):
+        d, i = torch.cdist(chunk, r).topk(k, dim=1, largest=False)
+        idx.append(i)
+        dist.append(d)
+    return torch.cat(idx).numpy(), torch.cat(dist).numpy().astype(np.float64)
+
+
+def neighbour_spacing(points: np.ndarray, k: int = KNN) -> np.ndarray:
+    """(P,) mean distance of each point to its ``k`` nearest other points, clipped to [0.25, 3] x the median."""
+    if len(points) <= k:
+        return np.full(len(points), 0.01, np.float32)
+    _, dist = nearest_index(points, points, k + 1)
+    spacing = dist[:, 1:].mean(axis=1)
+    median = float(np.median(spacing))
+    return np.clip(spacing, 0.25 * median, 3.0 * median).astype(np.float32)
+
+
+def proxy_points(path: str | Path, count: int, seed: int = 0) -> np.ndarray:
+    """``count`` points (count, 3) sampled uniformly by area on the clothed proxy in ``path`` (seeded)."""
+    from humanvdm_core.clothed_proxy import SCHEMA
+    from humanvdm_core.io import read_npz
+
+    try:
+        d = read_npz(path, SCHEMA, 1)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a clothed proxy ({exc})") from None
+    v, f = np.asarray(d["vertices"], np.float64), np.asarray(d["faces"], np.int64)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    if area.sum() <= 0:
+        raise InputError(f"{path}: the clothed proxy has no area")
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(f), size=count, p=area / area.sum())
+    u, w = rng.random(count), rng.random(count)
+    flip = u + w > 1
+    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+    return a[tri] + u[:, None] * (b[tri] - a[tri]) + w[:, None] * (c[tri] - a[tri])
+
+
+def _project(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (P, 2) and camera depths (P,) of world points in one camera."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    uv = cam[:, :2] / np.maximum(z, 1e-6)[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
+    return uv, z
+
+
+def visual_hull_points(views, body_vertices: np.ndarray, count: int, seed: int = 0,
+                       resolution: int = HULL_RESOLUTION) -> np.ndarray:
+    """Surface points of the training views' visual hull, merged with the body's concavities (see the
+    module docstring): ``count`` of them (a seeded uniform draw of surface voxels, with repeats when there are
+    fewer), each at a random place in its voxel."""
+    lo = body_vertices.min(0) - HULL_MARGIN
+    hi = body_vertices.max(0) + HULL_MARGIN
+    voxel = float((hi - lo).max()) / resolution
+    dims = np.maximum(1, np.ceil((hi - lo) / voxel).astype(int))
+    grid = np.stack(np.meshgrid(*[np.arange(n) for n in dims], indexing="ij"), -1).reshape(-1, 3)
+    centres = lo + (grid + 0.5) * voxel
+    misses = np.zeros(len(centres), np.int32)
+    alphas = views.alphas.cpu().numpy()
+    w2c, K, S = views.w2c.cpu().numpy().astype(np.float64), views.K.cpu().numpy().astype(np.float64), views.size
+    for i in range(len(alphas)):
+        uv, z = _project(centres, w2c[i], K[i])
+        px = np.floor(uv).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < S) & (px[:, 1] >= 0) & (px[:, 1] < S) & (z > 0)
+        empty = np.ones(len(centres), bool)  # the frames show the whole person: outside a frame is empty
+        empty[inside] = alphas[i][px[inside, 1], px[inside, 0]] < 0.5
+        misses += empty
+    solid = (misses <= int(HULL_MISSES * len(alphas))).reshape(*dims)
+    if not solid.any():
+        raise InputError("the visual hull of the frames' silhouettes is empty: the masks and cameras disagree")
+    import cv2
+
+    # surface: solid voxels with an empty 6-neighbour; depth inside: distance to the nearest empty voxel
+    padded = np.pad(solid, 1)
+    interior = solid.copy()
+    for axis in range(3):
+        for step in (-1, 1):
+            interior &= np.roll(padded, step, axis=axis)[1:-1, 1:-1, 1:-1]
+    surface = np.argwhere(solid & ~interior)
+    rng = np.random.default_rng(seed)
+    surface = surface[np.sort(rng.choice(len(surface), size=count, replace=len(surface) < count))]
+    points = lo + (surface + rng.random(surface.shape)) * voxel
+    # the body's points deep inside the hull: concavities the silhouettes cannot carve
+    depth = np.stack([cv2.distanceTransform(s.astype(np.uint8), cv2.DIST_L2, 3) for s in solid.astype(np.uint8)])
+    cell = np.floor((body_vertices - lo) / voxel).astype(np.int64)
+    ok = np.all((cell >= 0) & (cell < dims), axis=1)
+    deep = np.zeros(len(body_vertices), bool)
+    deep[ok] = depth[cell[ok, 0], cell[ok, 1], cell[ok, 2]] > HULL_CONCAVITY
+    return np.concatenate([points, body_vertices[deep]])
+
+
+def subject_anchor(anchor, points: np.ndarray):
+    """A :class:`~humanvdm_core.splat.human.BodyAnchor` of world ``points`` (P, 3) posed like ``anchor``'s
+    body: canonical positions by inverse LBS with the nearest body vertex's skinning weights, base scales
+    from the neighbour spacing; no UV map (``resolution`` 0, rows/cols -1)."""
+    from humanvdm_core.body.model import blend_transforms
+
+    verts, weights = posed_body(anchor)
+    nearest, _ = nearest_index(points, verts)
+    w = weights[nearest[:, 0]].astype(np.float32)
+    bones = torch.as_tensor(anchor.bone_transforms, dtype=torch.float32)
+    canon = torch.as_tensor(anchor.canonical_bone_transforms, dtype=torch.float32)
+    wt = torch.as_tensor(w)
+    posed_from_canonical = blend_transforms(wt, bones[None])[0] @ torch.linalg.inv(blend_transforms(wt, canon[None])[0])
+    homo = torch.cat([torch.as_tensor(points, dtype=torch.float32), torch.ones(len(points), 1)], 1)
+    canonical = (torch.linalg.inv(posed_from_canonical) @ homo[:, :, None])[:, :3, 0].numpy()
+    n = len(points)
+    return replace(anchor, resolution=0, rows=np.full(n, -1, np.int64), cols=np.full(n, -1, np.int64),
+                   positions=canonical.astype(np.float32), weights=w, spacing=neighbour_spacing(points))
+
+
+def zbuffer_size(points: int, coverage: float, size: int) -> int:
+    """The z-buffer resolution at which the nearest surface puts about :data:`POINTS_PER_CELL` of
+    ``points`` into each cell the subject covers (``coverage``: its share of the frame), at most
+    :data:`ZBUFFER_SIZE` and ``size``: fine enough to keep the silhouette, coarse enough that no cell of the
+    near surface is empty (where one is, the far surface behind it would count as visible)."""
+    cells = points / 2.0 / POINTS_PER_CELL  # about half of a closed surface faces the camera
+    return int(np.clip(np.sqrt(cells / max(coverage, 1e-3)), 8, min(ZBUFFER_SIZE, size)))
+
+
+def visibility(points: np.ndarray, w2c: np.ndarray, K: np.ndarray, size: int,
+               zbuffer_size: int = ZBUFFER_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """For one camera: which points are visible (P,) bool (in the image and within
+    :data:`VISIBLE_TOLERANCE` of the nearest point in their z-buffer cell, ``zbuffer_size`` cells across)
+    and their pixels (P, 2)."""
+    uv, z = _project(points, w2c, K)
+    scale = zbuffer_size / size
+    cell = np.floor(uv * scale).astype(np.int64)
+    inside = (cell[:, 0] >= 0) & (cell[:, 0] < zbuffer_size) & (cell[:, 1] >= 0) & (cell[:, 1] < zbuffer_size) & (z > 0)
+    flat = cell[:, 1] * zbuffer_size + cell[:, 0]
+    zbuf = np.full(zbuffer_size * zbuffer_size, np.inf)
+    np.minimum.at(zbuf, flat[inside], z[inside])
+    visible = np.zeros(len(points), bool)
+    visible[inside] = z[inside] <= zbuf[flat[inside]] + VISIBLE_TOLERANCE
+    return visible, uv
+
+
+def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, C) sampled at pixel coordinates ``uv`` (P, 2) (pixel centres at +0.5), clamped."""
+    h, w = image.shape[:2]
+    x = np.clip(uv[:, 0] - 0.5, 0, w - 1)
+    y = np.clip(uv[:, 1] - 0.5, 0, h - 1)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return ((image[y0, x0] * (1 - fx) + image[y0, x1] * fx) * (1 - fy)
+            + (image[y1, x0] * (1 - fx) + image[y1, x1] * fx) * fy)
+
+
+def project_colors(points: np.ndarray, views) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form colours (P, 3) in [0, 1] of world points from the training views and how many views
+    saw each (P,) (see the module docstring)."""
+    images = views.images.cpu().numpy()
+    alphas = views.alphas.cpu().numpy()
+    w2c, K = views.w2c.cpu().numpy().astype(np.float64), views.K.cpu().numpy().astype(np.float64)
+    total = np.zeros((len(points), 3))
+    weight = np.zeros(len(points))
+    seen = np.zeros(len(points), np.int32)
+    zsize = zbuffer_size(len(points), float(alphas.mean()), views.size)
+    for i in range(len(images)):
+        vis, uv = visibility(points, w2c[i], K[i], views.size, zsize)
+        a = _bilinear(alphas[i][..., None], uv[vis])[:, 0]
+        w = np.where(a > 0.5, a, 0.0)
+        total[vis] += w[:, None] * _bilinear(images[i], uv[vis])
+        weight[vis] += w
+        seen[vis] += w > 0
+    colors = total / np.maximum(weight, 1e-8)[:, None]
+    known = weight > 0
+    if known.any() and not known.all():
+        idx, _ = nearest_index(points[~known], points[known])
+        colors[~known] = colors[known][idx[:, 0]]
+    elif not known.any():
+        colors[:] = 0.5
+    return np.clip(colors, 0.0, 1.0).astype(np.float32), seen
+
+
+def start_anchor(anchor, views, template: str, points: int, proxy: Path | None, seed: int = 0):
+    """(anchor, description) of the Gaussians' starting points: ``body``: the body anchor itself (UV texels);
+    ``subject`` / ``auto``: ``points`` points on the clothed proxy ``proxy`` when that file exists, else on
+    the visual hull of ``views`` merged with the body (:func:`subject_anchor`)."""
+    if template == "body":
+        return anchor, "body (UV texels)"
+    if template not in ("subject", "auto"):
+        raise ValueError(f"template must be auto, subject or body, got {template!r}")
+    if proxy is not None and Path(proxy).is_file():
+        return subject_anchor(anchor, proxy_points(proxy, points, seed)), "subject (clothed proxy)"
+    verts, _ = posed_body(anchor)
+    return subject_anchor(anchor, visual_hull_points(views, verts, points, seed)), "subject (visual hull + body)"
+
+
+def init_colors(human, views) -> int:
+    """Set ``human``'s colours in closed form (:func:`project_colors` at its posed centres) and prune the
+    Gaussians no view sees (unless that would leave fewer than 16); returns how many were pruned."""
+    with torch.no_grad():
+        means = human().means.cpu().numpy().astype(np.float64)
+    colors, seen = project_colors(means, views)
+    human.set_colors(colors)
+    if (seen > 0).sum() < 16:
+        return 0
+    return human.prune(torch.as_tensor(seen > 0))
