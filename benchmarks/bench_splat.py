@@ -13,7 +13,7 @@ azimuths 45/135/225/315, rendered at ``--eval-size``².
 Runs, all with the ``cpu`` preset's settings (as the stage runs them: template, closed-form colours,
 coarse-to-fine, densify): ``template=body`` and ``template=subject`` (here the visual hull of the
 frames merged with the body: an oracle orbit has no clothed proxy), and for ``gown`` and ``renderpeople``
-the subject template started from 2000 / 4000 / 16000 points (the count sweep). Per run: held-out PSNR,
+the subject template started from points 32 / 22 / 11 mm apart (16 mm is the preset's; the count sweep). Per run: held-out PSNR,
 SSIM, masked PSNR and masked SSIM (within the union of the two silhouettes: blur does not win there),
 silhouette IoU; wall time of the template, colour init and training on this CPU (data preparation and
 evaluation excluded); Gaussian counts (start, end).
@@ -134,7 +134,7 @@ def evaluate(human, subject: dict, tile_size: int) -> dict:
             "masked_ssim": round(float(m[3]), 4), "iou": round(float(m[4]), 4)}
 
 
-def run_fit(subject: dict, label: str, template: str, points: int | None = None, seed: int = 0) -> dict:
+def run_fit(subject: dict, label: str, template: str, spacing: float | None = None, seed: int = 0) -> dict:
     """One stage-equivalent fit with the cpu preset's settings; returns its row."""
     import torch
 
@@ -148,7 +148,7 @@ def run_fit(subject: dict, label: str, template: str, points: int | None = None,
     views = H.load_views(subject["root"] / "orbit", preset["train_resolution"])
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
-    anchor, desc = start_anchor(anchor, views, template, points or preset["subject_points"], None, seed)
+    anchor, desc = start_anchor(anchor, views, template, spacing or preset["subject_spacing"], None, seed)
     human = H.GaussianHuman(anchor, seed=seed, learn_opacity=True)
     start = human.num_gaussians
     init_colors(human, views)
@@ -201,7 +201,7 @@ def chart(rows: list[dict], path: Path, count_path: Path) -> None:
             ax.plot([r["num_gaussians"] for r in pts], [r[key] for r in pts], "o-", label=subject)
     for ax, key in zip(axes, ("held-out PSNR (dB)", "held-out masked SSIM"), strict=True):
         ax.set_xscale("log")
-        ax.set_xlabel("final Gaussian count (subject template, 2k-16k starting points, densified)")
+        ax.set_xlabel("final Gaussian count (subject template, starting points 11-32 mm apart, densified)")
         ax.set_ylabel(key)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
@@ -225,8 +225,8 @@ def bench_subject(name: str, render_size: int, eval_size: int, quick: bool) -> t
             rows.append(run_fit(subject, "body", "body"))
             rows.append(run_fit(subject, "subject", "subject"))
             if name != "synthetic" and not quick:
-                for points in (2000, 4000, 16000):
-                    rows.append(run_fit(subject, f"subject {points} points", "subject", points))
+                for spacing in (0.032, 0.022, 0.011):
+                    rows.append(run_fit(subject, f"subject {1000 * spacing:g} mm apart", "subject", spacing))
         except Exception as exc:  # a failing subject is reported, the others still run
             traceback.print_exc()
             notes = {"error": f"{type(exc).__name__}: {exc}"}

@@ -6,7 +6,8 @@ view), ``body`` (``body.npz`` from ``fit-smpl``, schema ``humanvdm.body_fit`` v1
 :mod:`humanvdm_core.splat.human`'s; where the Gaussians start is ``template``
 (:mod:`humanvdm_core.splat.template`):
 
-- ``subject`` (``auto``'s choice): ``subject_points`` points on the subject's own surface -- the clothed
+- ``subject`` (``auto``'s choice): points ``subject_spacing`` apart on the subject's own surface (so a gown
+  gets more than a T-shirt) -- the clothed
   proxy when the orbit has one, else the visual hull of the frames' silhouettes merged with the body --
   each skinned and un-posed with its nearest body vertex, so a dress, a coat, long hair or a held object
   has Gaussians of its own;
@@ -20,7 +21,7 @@ Then: a per-Gaussian feature + MLP decoder for offsets / colour residuals / scal
 at half resolution, and (``densify``) pruning and splitting at the preset's steps, so the count
 follows the subject; the counts go to ``train_log.json``.
 
-Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``subject_points`` / ``uv_resolution`` /
+Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``subject_spacing`` / ``uv_resolution`` /
 ``train_resolution`` / ``iterations`` / ``tile_size`` unless those params are set (non-zero), and the
 coarse share, the densify steps and the cap on the count (see :data:`humanvdm_core.splat.human.PRESETS`):
 ``tiny`` (tests), ``cpu`` (a CPU run of minutes), ``full`` (paper size, for a GPU with gsplat).
@@ -63,7 +64,8 @@ SPEC = StageSpec(
         "template": Param("auto", "where the Gaussians start: subject (the clothed proxy diffuse wrote, else the "
                                   "visual hull of the frames, merged with the body), body (one per texel of the body's "
                                   "UV map, as the paper), auto (subject)", choices=("auto", "subject", "body")),
-        "subject_points": Param(0, "Gaussians the subject template starts with; 0: from the preset"),
+        "subject_spacing": Param(0.0, "subject template: metres between its starting points (their count follows "
+                                      "the subject's surface area); 0: from the preset"),
         "uv_resolution": Param(0, "body template: UV map size R (Gaussian count ~0.62 R^2); 0: from the preset"),
         "init_colors": Param(True, "initialise colours in closed form (the frames projected onto the Gaussians, "
                                    "visibility-tested, averaged), so training starts from the person"),
@@ -110,7 +112,7 @@ def resolve_settings(p: dict, cuda: bool) -> dict:
 
     name = p["preset"] if p["preset"] != "auto" else ("full" if cuda else "cpu")
     out = {"preset": name, **PRESETS[name]}
-    for key in ("uv_resolution", "subject_points", "train_resolution", "iterations", "tile_size"):
+    for key in ("uv_resolution", "subject_spacing", "train_resolution", "iterations", "tile_size"):
         if p[key] < 0:
             raise ConfigError(f"param {key} must be >= 0, got {p[key]}")
         if p[key] > 0:
@@ -149,7 +151,7 @@ def run(ctx: StageContext) -> None:
     views = H.load_views(ctx.inputs["frames"], s["train_resolution"])
     cameras = read_cameras(ctx.inputs["frames"])
     proxy = ctx.inputs["orbit"] / "proxy.npz" if "orbit" in ctx.inputs else None
-    anchor, template = start_anchor(anchor, views, p["template"], s["subject_points"], proxy, p["seed"])
+    anchor, template = start_anchor(anchor, views, p["template"], s["subject_spacing"], proxy, p["seed"])
     ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d², %d iterations on %s", s["preset"], template,
                  len(anchor.positions), len(views.images), s["train_resolution"], s["iterations"], device.type)
     human = H.GaussianHuman(anchor, feature_dim=p["feature_dim"], hidden=p["hidden"], scale_mode=p["scale_mode"],

@@ -64,11 +64,11 @@ OPACITY_EPS = 1e-6  # opacity 1 is stored as logit(1 - eps) in the PLY
 
 # preset -> settings; Gaussians on Anny's UV layout: R=64 -> 2,558, 128 -> 10,253, 569 -> 202,521 (paper: 202,738)
 PRESETS: dict[str, dict[str, Any]] = {
-    "tiny": {"uv_resolution": 64, "subject_points": 2500, "train_resolution": 64, "iterations": 100, "tile_size": 4,
+    "tiny": {"uv_resolution": 64, "subject_spacing": 0.028, "train_resolution": 64, "iterations": 100, "tile_size": 4,
              "coarse_fraction": 0.0, "densify_at": (0.5,), "max_gaussians": 5000},
-    "cpu": {"uv_resolution": 128, "subject_points": 8000, "train_resolution": 192, "iterations": 500, "tile_size": 8,
+    "cpu": {"uv_resolution": 128, "subject_spacing": 0.016, "train_resolution": 192, "iterations": 500, "tile_size": 8,
             "coarse_fraction": 0.3, "densify_at": (0.3, 0.6), "max_gaussians": 30000},
-    "full": {"uv_resolution": 569, "subject_points": 100000, "train_resolution": 1080, "iterations": 30000,
+    "full": {"uv_resolution": 569, "subject_spacing": 0.0045, "train_resolution": 1080, "iterations": 30000,
              "tile_size": 16, "coarse_fraction": 0.1, "densify_at": (0.1, 0.2, 0.3, 0.4, 0.5), "max_gaussians": 500000},
 }
 

@@ -5,8 +5,8 @@ lies off the naked body (a dress, a coat, long hair, a held object) has no Gauss
 subject template starts from the subject's surface instead:
 
 - the clothed proxy that ``diffuse`` wrote beside its orbit (``proxy.npz``, see
-  :mod:`humanvdm_core.clothed_proxy`): ``count`` points sampled uniformly by area on it
-  (:func:`proxy_points`);
+  :mod:`humanvdm_core.clothed_proxy`): points sampled uniformly by area on it, ``spacing`` apart, so
+  their count follows the subject's surface (:func:`proxy_points`);
 - else the visual hull of the training views' silhouettes (:func:`visual_hull_points`): a voxel grid
   around the body carved by every view's mask, its surface voxels, merged with the fitted body's
   points that lie deeper than :data:`HULL_CONCAVITY` voxels inside the hull (concavities no
@@ -38,6 +38,7 @@ KNN = 4
 HULL_RESOLUTION = 128  # voxels along the longest side of the carving box
 HULL_MARGIN = 0.25  # metres around the body's box that the hull may reach
 HULL_MISSES = 0.1  # share of the views whose mask may disagree before a voxel is carved away
+VOXEL_STAIRS = 0.85  # surface voxels per voxel-sized patch of a hull's area (measured: 1.7 m² body, 128 voxels)
 HULL_CONCAVITY = 3  # body points deeper than this many voxels inside the hull are added to it
 ZBUFFER_SIZE = 128  # largest z-buffer resolution of the visibility test ...
 POINTS_PER_CELL = 3  # ... which aims at this many points of the near surface per cell
@@ -73,8 +74,14 @@ def neighbour_spacing(points: np.ndarray, k: int = KNN) -> np.ndarray:
     return np.clip(spacing, 0.25 * median, 3.0 * median).astype(np.float32)
 
 
-def proxy_points(path: str | Path, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` points (count, 3) sampled uniformly by area on the clothed proxy in ``path`` (seeded)."""
+def surface_count(area: float, spacing: float) -> int:
+    """Points that cover ``area`` (m²) at ``spacing`` (m) apart: ``area / spacing²``, at least 64."""
+    return max(64, int(round(area / (spacing * spacing))))
+
+
+def proxy_points(path: str | Path, spacing: float, seed: int = 0) -> np.ndarray:
+    """Points sampled uniformly by area (seeded) on the clothed proxy in ``path``, about ``spacing`` apart
+    (:func:`surface_count` of its area): a gown gets more than a T-shirt."""
     from humanvdm_core.clothed_proxy import SCHEMA
     from humanvdm_core.io import read_npz
 
@@ -88,6 +95,7 @@ def proxy_points(path: str | Path, count: int, seed: int = 0) -> np.ndarray:
     if area.sum() <= 0:
         raise InputError(f"{path}: the clothed proxy has no area")
     rng = np.random.default_rng(seed)
+    count = surface_count(float(area.sum()), spacing)
     tri = rng.choice(len(f), size=count, p=area / area.sum())
     u, w = rng.random(count), rng.random(count)
     flip = u + w > 1
@@ -103,11 +111,12 @@ def _project(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> tuple[np.nda
     return uv, z
 
 
-def visual_hull_points(views, body_vertices: np.ndarray, count: int, seed: int = 0,
+def visual_hull_points(views, body_vertices: np.ndarray, spacing: float, seed: int = 0,
                        resolution: int = HULL_RESOLUTION) -> np.ndarray:
     """Surface points of the training views' visual hull, merged with the body's concavities (see the
-    module docstring): ``count`` of them (a seeded uniform draw of surface voxels, with repeats when there are
-    fewer), each at a random place in its voxel."""
+    module docstring), about ``spacing`` apart (:func:`surface_count` of the hull's area, estimated as
+    its surface voxels' faces / :data:`VOXEL_STAIRS`): a seeded uniform draw of surface voxels (with
+    repeats when there are fewer), each point at a random place in its voxel."""
     lo = body_vertices.min(0) - HULL_MARGIN
     hi = body_vertices.max(0) + HULL_MARGIN
     voxel = float((hi - lo).max()) / resolution
@@ -137,6 +146,7 @@ def visual_hull_points(views, body_vertices: np.ndarray, count: int, seed: int =
             interior &= np.roll(padded, step, axis=axis)[1:-1, 1:-1, 1:-1]
     surface = np.argwhere(solid & ~interior)
     rng = np.random.default_rng(seed)
+    count = surface_count(len(surface) * voxel * voxel / VOXEL_STAIRS, spacing)
     surface = surface[np.sort(rng.choice(len(surface), size=count, replace=len(surface) < count))]
     points = lo + (surface + rng.random(surface.shape)) * voxel
     # the body's points deep inside the hull: concavities the silhouettes cannot carve
@@ -233,18 +243,18 @@ def project_colors(points: np.ndarray, views) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(colors, 0.0, 1.0).astype(np.float32), seen
 
 
-def start_anchor(anchor, views, template: str, points: int, proxy: Path | None, seed: int = 0):
+def start_anchor(anchor, views, template: str, spacing: float, proxy: Path | None, seed: int = 0):
     """(anchor, description) of the Gaussians' starting points: ``body``: the body anchor itself (UV texels);
-    ``subject`` / ``auto``: ``points`` points on the clothed proxy ``proxy`` when that file exists, else on
-    the visual hull of ``views`` merged with the body (:func:`subject_anchor`)."""
+    ``subject`` / ``auto``: points ``spacing`` apart on the clothed proxy ``proxy`` when that file exists,
+    else on the visual hull of ``views`` merged with the body (:func:`subject_anchor`)."""
     if template == "body":
         return anchor, "body (UV texels)"
     if template not in ("subject", "auto"):
         raise ValueError(f"template must be auto, subject or body, got {template!r}")
     if proxy is not None and Path(proxy).is_file():
-        return subject_anchor(anchor, proxy_points(proxy, points, seed)), "subject (clothed proxy)"
+        return subject_anchor(anchor, proxy_points(proxy, spacing, seed)), "subject (clothed proxy)"
     verts, _ = posed_body(anchor)
-    return subject_anchor(anchor, visual_hull_points(views, verts, points, seed)), "subject (visual hull + body)"
+    return subject_anchor(anchor, visual_hull_points(views, verts, spacing, seed)), "subject (visual hull + body)"
 
 
 def init_colors(human, views) -> int:
