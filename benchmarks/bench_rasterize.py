@@ -1,22 +1,29 @@
-"""Benchmark: the pure-PyTorch tiled Gaussian rasterizer on a human-sized cloud (CPU).
+"""Benchmark: the CPU Gaussian rasterizers, torch (pure PyTorch) vs numba (compiled compositing).
 
-Scene: N Gaussians on the surface of a 1.75 m body-like shape (ellipsoid torso, head, limbs) at the
-origin, scales 5-10 mm, random rotations, opacities 0.5-1, RGB colours; one camera on a 3 m orbit at 10 deg
-elevation with the SV3D vertical FOV of 33.8 deg. For N in {20k, 200k}, image size in {256, 576} and
-torch threads in {1, 2}, each configuration in its own process, the median over ``--repeats`` of
+Scenes (``--scene``): N Gaussians on the surface of a 1.75 m body-like shape (ellipsoid torso, head, limbs)
+at the origin, opacities 0.5-1, RGB colours; ``iso``: isotropic, every scale the mean surface spacing
+sqrt(area / N), like splat-optimize's UV-texel Gaussians; ``aniso``: scales 5-10 mm per axis, random
+rotations. One camera on a 3 m orbit at 10 deg elevation with the SV3D vertical FOV of 33.8 deg.
 
-- ``forward_s``: ``rasterize_gaussians(..., backend="torch")`` under ``torch.no_grad()`` (rendering);
+For each (N, image size) in ``--configs``, thread count in ``--threads`` and backend in ``--backends``, in
+its own process with a stage's thread environment (:func:`humanvdm_core.threads.thread_env`:
+OMP/MKL/NUMBA_NUM_THREADS, ``OMP_WAIT_POLICY=PASSIVE``), after one warm-up call, over ``--repeats``:
+
+- ``forward_s``: ``rasterize_gaussians(..., backend=...)`` under ``torch.no_grad()`` (rendering);
 - ``forward_backward_s``: the same with gradients enabled plus ``loss.backward()`` w.r.t. means, quats,
-  scales, opacities, colours (one optimisation step's rasterizer work);
+  scales, opacities, colours (one view of an optimisation step's rasterizer work);
 
-and ``peak_rss_mb`` (the process's peak resident memory, torch and the scene included) with
-``base_rss_mb`` (resident memory after building the scene, before the first render), plus the number
-of tile-Gaussian intersections. The machine may be shared: the load average at the start and after each
-configuration is recorded, and ``forward_cpu_s`` (process CPU seconds of the median forward) shows
-whether a second thread actually got a core (cpu/wall near 2) or waited (near or below 1).
+medians, with every run and the fastest (``*_min_s``: the least disturbed by other work on a shared
+machine), ``forward_cpu_s`` and ``forward_backward_cpu_s`` (median process CPU seconds: near 2x wall when
+a second thread got a core; with one thread, the work done whatever the machine's load), the
+tile-Gaussian intersections, ``peak_rss_mb`` and ``base_rss_mb`` (after building the
+scene). ``speedups`` gives torch / numba per configuration (medians, fastest runs, CPU seconds). ``numba_compile`` times the first numba call
+(forward + backward, a tiny scene) in a fresh process with an empty ``NUMBA_CACHE_DIR`` (compiling) and
+again with that cache filled (loading).
 
 Writes ``benchmarks/results/rasterize.json``.
-Run: ``.venv/bin/python benchmarks/bench_rasterize.py [--repeats 3] [--sizes 20000,200000] [--res 256,576]``.
+Run: ``.venv/bin/python benchmarks/bench_rasterize.py [--repeats 5] [--configs 10000x192,200000x576]
+[--threads 1,2] [--backends torch,numba] [--scene iso]``.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -37,8 +45,9 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 
-def body_cloud(n: int, seed: int = 0):
-    """(means, quats, scales, opacities, colors) for n Gaussians on a body-like union of ellipsoids."""
+def body_cloud(n: int, seed: int = 0, isotropic: bool = False):
+    """(means, quats, scales, opacities, colors) for n Gaussians on a body-like union of ellipsoids;
+    ``isotropic``: identity rotations and every scale the mean surface spacing sqrt(area / n)."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
@@ -62,6 +71,9 @@ def body_cloud(n: int, seed: int = 0):
     means[:, 1] = -means[:, 1]  # OpenCV world: y down
     quats = torch.randn(n, 4, generator=g)
     scales = 0.005 + 0.005 * torch.rand(n, 3, generator=g)
+    if isotropic:
+        quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1)
+        scales = torch.full((n, 3), math.sqrt(float(area.sum()) / n))
     opacities = 0.5 + 0.5 * torch.rand(n, generator=g)
     colors = torch.rand(n, 3, generator=g)
     return means, quats, scales, opacities, colors
@@ -95,38 +107,44 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def run_one(n: int, size: int, threads: int, repeats: int) -> dict:
+def run_one(n: int, size: int, threads: int, backend: str, scene: str, repeats: int) -> dict:
     import torch
 
     from humanvdm_core.splat import rasterize_gaussians
 
     torch.set_num_threads(threads)
-    params = body_cloud(n)
+    params = body_cloud(n, isotropic=scene == "iso")
     viewmats, Ks = orbit_camera(size)
     base = rss_mb()
 
-    def forward() -> tuple:
-        return rasterize_gaussians(*params, viewmats, Ks, size, size, backend="torch")
+    def step(grad: bool) -> tuple:
+        leaves = [t.clone().requires_grad_(grad) for t in params]
+        colors, alphas, meta = rasterize_gaussians(*leaves, viewmats, Ks, size, size, backend=backend)
+        if grad:
+            (colors.square().mean() + alphas.mean()).backward()
+        return colors, alphas, meta
 
+    step(True)  # warm-up: numba loads (or compiles) its kernels here
     fwd, fwd_bwd, fwd_cpu = [], [], []
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         with torch.no_grad():
-            colors, alphas, meta = forward()
+            colors, alphas, meta = step(False)
         fwd.append(time.perf_counter() - t0)
         fwd_cpu.append(time.process_time() - c0)
-    leaves = [t.clone().requires_grad_(True) for t in params]
+    fwd_bwd_cpu = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        colors, alphas, _ = rasterize_gaussians(*leaves, viewmats, Ks, size, size, backend="torch")
-        (colors.square().mean() + alphas.mean()).backward()
+        t0, c0 = time.perf_counter(), time.process_time()
+        step(True)
         fwd_bwd.append(time.perf_counter() - t0)
-        for t in leaves:
-            t.grad = None
+        fwd_bwd_cpu.append(time.process_time() - c0)
     return {
-        "n_gaussians": n, "size": size, "threads": threads,
+        "backend": meta["backend"], "scene": scene, "n_gaussians": n, "size": size, "threads": threads,
         "forward_s": round(statistics.median(fwd), 4), "forward_backward_s": round(statistics.median(fwd_bwd), 4),
-        "forward_cpu_s": round(statistics.median(fwd_cpu), 4), "forward_runs_s": [round(t, 4) for t in fwd], "forward_backward_runs_s": [round(t, 4) for t in fwd_bwd],
+        "forward_min_s": round(min(fwd), 4), "forward_backward_min_s": round(min(fwd_bwd), 4),
+        "forward_cpu_s": round(statistics.median(fwd_cpu), 4),
+        "forward_backward_cpu_s": round(statistics.median(fwd_bwd_cpu), 4),
+        "forward_runs_s": [round(t, 4) for t in fwd], "forward_backward_runs_s": [round(t, 4) for t in fwd_bwd],
         "n_intersections": meta["n_intersections"][0], "coverage": round(float((alphas > 0.5).float().mean()), 4),
         "base_rss_mb": round(base, 1),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -134,36 +152,92 @@ def run_one(n: int, size: int, threads: int, repeats: int) -> dict:
     }
 
 
+def first_numba_call() -> dict:
+    """Seconds of the first numba-backend forward + backward of a tiny scene in this process."""
+    import torch
+
+    from humanvdm_core.splat import rasterize_gaussians
+
+    torch.set_num_threads(1)
+    leaves = [t.requires_grad_(True) for t in body_cloud(500, isotropic=True)]
+    viewmats, Ks = orbit_camera(64)
+    t0 = time.perf_counter()
+    colors, alphas, _ = rasterize_gaussians(*leaves, viewmats, Ks, 64, 64, backend="numba")
+    (colors.sum() + alphas.sum()).backward()
+    return {"first_call_s": round(time.perf_counter() - t0, 3)}
+
+
+def _child(args: list[str], threads: int, **env: str) -> dict:
+    from humanvdm_core.threads import thread_env
+
+    out = subprocess.run([sys.executable, __file__, *args], env=thread_env(threads, dict(os.environ, **env),
+                                                                             override=True),
+                         capture_output=True, text=True, check=True, cwd=REPO)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--sizes", default="20000,200000", help="numbers of Gaussians, comma-separated")
-    ap.add_argument("--res", default="256,576", help="square image sizes, comma-separated")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--configs", default="10000x192,200000x576",
+                    help="comma-separated NxSIZE: Gaussians x square image size")
     ap.add_argument("--threads", default="1,2")
-    ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: "n,size,threads" -> JSON on stdout
+    ap.add_argument("--backends", default="torch,numba")
+    ap.add_argument("--scene", default="iso", choices=("iso", "aniso"))
+    ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: "n,size,threads,backend" -> JSON on stdout
+    ap.add_argument("--first-call", action="store_true", help=argparse.SUPPRESS)  # internal
     args = ap.parse_args()
     if args.one:
-        n, size, threads = (int(v) for v in args.one.split(","))
-        print(json.dumps(run_one(n, size, threads, args.repeats)))
+        n, size, threads, backend = args.one.split(",")
+        print(json.dumps(run_one(int(n), int(size), int(threads), backend, args.scene, args.repeats)))
+        return
+    if args.first_call:
+        print(json.dumps(first_numba_call()))
         return
 
     from benchmarks.common import save_result
 
-    load = os.getloadavg()
+    result: dict = {"loadavg_at_start": os.getloadavg()}
+    backends = args.backends.split(",")
+    if "numba" in backends:
+        with tempfile.TemporaryDirectory() as cache:
+            cold = _child(["--first-call"], 1, NUMBA_CACHE_DIR=cache)["first_call_s"]
+            warm = _child(["--first-call"], 1, NUMBA_CACHE_DIR=cache)["first_call_s"]
+        result["numba_compile"] = {"cold_first_call_s": cold, "cached_first_call_s": warm}
+        print(f"numba first call: {cold:.2f} s compiling, {warm:.2f} s from the cache", flush=True)
     rows = []
-    for n in (int(v) for v in args.sizes.split(",")):
-        for size in (int(v) for v in args.res.split(",")):
-            for threads in (int(v) for v in args.threads.split(",")):
-                env = dict(os.environ, OMP_NUM_THREADS=str(threads))
-                out = subprocess.run([sys.executable, __file__, "--one", f"{n},{size},{threads}",
-                                      "--repeats", str(args.repeats)], env=env, capture_output=True, text=True,
-                                     check=True, cwd=REPO)
-                row = json.loads(out.stdout.strip().splitlines()[-1])
+    print("| N | size | threads | backend | forward s | fwd+bwd s (min) | intersections | peak RSS |")
+    for config in args.configs.split(","):
+        n, size = (int(v) for v in config.split("x"))
+        for threads in (int(v) for v in args.threads.split(",")):
+            for backend in backends:
+                row = _child(["--one", f"{n},{size},{threads},{backend}", "--repeats", str(args.repeats),
+                              "--scene", args.scene], threads)
                 rows.append(row)
-                print(f"| {n} | {size}² | {threads} | {row['forward_s']:.3f} | {row['forward_backward_s']:.3f} | "
+                print(f"| {n} | {size}² | {threads} | {backend} | {row['forward_s']:.4f} | "
+                      f"{row['forward_backward_s']:.4f} ({row['forward_backward_min_s']:.4f}) | "
                       f"{row['n_intersections']} | {row['peak_rss_mb']:.0f} MB |", flush=True)
+    result["rows"] = rows
+    speedups = []
+    for row in rows:
+        if row["backend"] != "numba":
+            continue
+        ref = [r for r in rows if r["backend"] == "torch" and all(r[k] == row[k] for k in
+                                                                  ("n_gaussians", "size", "threads"))]
+        if ref:
+            speedups.append({k: row[k] for k in ("n_gaussians", "size", "threads")} | {
+                "forward": round(ref[0]["forward_s"] / row["forward_s"], 2),
+                "forward_backward": round(ref[0]["forward_backward_s"] / row["forward_backward_s"], 2),
+                "forward_backward_min": round(ref[0]["forward_backward_min_s"] / row["forward_backward_min_s"], 2),
+                "forward_backward_cpu": round(ref[0]["forward_backward_cpu_s"] / row["forward_backward_cpu_s"], 2),
+            })
+    result["speedups"] = speedups
+    for sp in speedups:
+        print(f"speedup torch/numba at {sp['n_gaussians']} x {sp['size']}², {sp['threads']} thread(s): "
+              f"forward {sp['forward']}x, forward+backward {sp['forward_backward']}x "
+              f"(fastest runs: {sp['forward_backward_min']}x; CPU seconds: {sp['forward_backward_cpu']}x)")
     command = "python benchmarks/bench_rasterize.py " + " ".join(sys.argv[1:])
-    path = save_result("rasterize", {"loadavg_at_start": load, "rows": rows}, command=command.strip())
+    path = save_result("rasterize", result, command=command.strip())
     print(f"wrote {path}")
 
 

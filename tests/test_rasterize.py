@@ -1,4 +1,5 @@
-"""Tests for the Gaussian rasterizer: tiled torch path vs dense reference, gradients, conventions, gsplat."""
+"""Tests for the Gaussian rasterizer: tiled torch path vs dense reference, the numba kernels vs the torch path
+(their oracle), gradients, conventions, gsplat."""
 
 from __future__ import annotations
 
@@ -92,8 +93,11 @@ def test_tiled_gradients_match_dense(clumped, monkeypatch):
     assert grads["torch"][0].abs().max() > 1e-3
 
 
+@pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmats"])
-def test_gradients_match_finite_differences(name):
+def test_gradients_match_finite_differences(name, backend):
+    if backend == "numba":
+        pytest.importorskip("numba")
     s = _scene(5, seed=4, cams=1)
     s["opacities"] = s["opacities"].clamp(max=0.8)
     weights = torch.rand(1, 20, 24, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
@@ -101,7 +105,7 @@ def test_gradients_match_finite_differences(name):
 
     def loss(value: torch.Tensor) -> torch.Tensor:
         colors, alphas, _ = rasterize_gaussians(**dict(s, **{name: value}), width=24, height=20,
-                                                backend="torch")
+                                                backend=backend)
         return (torch.cat([colors, alphas], -1) * weights).sum()
 
     x = s[name].clone().requires_grad_(True)
@@ -276,7 +280,8 @@ def test_bad_inputs_and_backends():
     if not torch.cuda.is_available():
         with pytest.raises(RuntimeError, match="CUDA"):
             rasterize_gaussians(**s, width=8, height=8, backend="gsplat")
-        assert rasterize_gaussians(**s, width=8, height=8, backend="auto")[2]["backend"] == "torch"
+        expected = "numba" if rz._numba_available() else "torch"
+        assert rasterize_gaussians(**s, width=8, height=8, backend="auto")[2]["backend"] == expected
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat needs CUDA")
@@ -292,3 +297,157 @@ def test_gsplat_matches_torch_backend():
     # screen boxes cut a few faint (alpha < 0.011) pixels at tile borders: small max, tiny mean difference.
     for a, b in ((theirs[0].cpu(), ours[0]), (theirs[1].cpu(), ours[1])):
         assert (a - b).abs().max() < 2e-2 and (a - b).abs().mean() < 1e-3
+
+
+# ----------------------------------------------------------------------------------------- numba kernels
+
+
+def _hard_scene(n: int, seed: int, dtype: torch.dtype = torch.float64) -> dict:
+    """Anisotropic, overlapping Gaussians; a clump opaque enough that pixels and whole tiles terminate
+    early; some culled (behind the camera, beyond the far plane, off screen, too transparent)."""
+    s = _scene(n, seed=seed, dtype=dtype)
+    s["means"][: n // 2] *= 0.25  # the clump
+    s["scales"][: n // 2] *= 1.5
+    s["opacities"][: n // 2] = s["opacities"][: n // 2].clamp(min=0.85)
+    s["opacities"][0] = 1.0  # alpha clamped at ALPHA_MAX somewhere
+    s["means"][-1] = torch.tensor([0.0, 0.0, -6.0], dtype=dtype)  # behind both cameras
+    s["means"][-2] = torch.tensor([30.0, 0.0, 1.0], dtype=dtype)  # far off screen
+    s["means"][-3] = torch.tensor([0.0, 0.0, 5e3], dtype=dtype)  # beyond far_plane=1e3
+    s["opacities"][-4] = 1e-3  # below 1/255
+    return s
+
+
+def _render_with_grads(s: dict, bg: torch.Tensor, weights: torch.Tensor, backend: str, width: int,
+                       height: int) -> tuple[torch.Tensor, torch.Tensor, dict, tuple[torch.Tensor, ...]]:
+    leaves = {k: v.clone().requires_grad_(True) for k, v in s.items()}
+    bg = bg.clone().requires_grad_(True)
+    colors, alphas, meta = rasterize_gaussians(**leaves, width=width, height=height, backgrounds=bg,
+                                               far_plane=1e3, backend=backend)
+    loss = (torch.cat([colors, alphas], -1) * weights).sum()
+    grads = torch.autograd.grad(loss, list(leaves.values()) + [bg])
+    return colors.detach(), alphas.detach(), meta, grads
+
+
+@pytest.mark.parametrize("size", [(64, 48), (70, 37)])
+def test_numba_matches_torch_images_and_gradients(size):
+    pytest.importorskip("numba")
+    w, h = size
+    s = _hard_scene(400, seed=11)
+    bg = torch.tensor([[0.2, 0.3, 0.4], [1.0, 0.0, 0.5]], dtype=torch.float64)
+    weights = torch.rand(2, h, w, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    fast = _render_with_grads(s, bg, weights, "numba", w, h)
+    ref = _render_with_grads(s, bg, weights, "torch", w, h)
+    assert fast[2]["backend"] == "numba" and fast[2]["tile_size"] == rz.NUMBA_TILE_SIZE
+    assert fast[0].shape == (2, h, w, 3) and fast[1].shape == (2, h, w, 1)
+    assert (fast[0] - ref[0]).abs().max() < 1e-12 and (fast[1] - ref[1]).abs().max() < 1e-12
+    assert ref[1].max() > 0.999  # some pixels stopped at T <= 1e-4 ...
+    assert (ref[1] < 0.5).any()  # ... and some are mostly background
+    radii = fast[2]["radii"]
+    assert int((radii[:, -3:] > 0).sum()) == 0 and int((radii[:, -4] > 0).sum()) == 0  # culled
+    for name, a, b in zip(list(s) + ["backgrounds"], fast[3], ref[3], strict=True):
+        assert torch.allclose(a, b, rtol=1e-7, atol=1e-9), name
+    assert fast[3][0].abs().max() > 1e-3
+
+
+def test_numba_matches_torch_float32_features_per_camera_colors():
+    pytest.importorskip("numba")
+    s = _hard_scene(300, seed=12, dtype=torch.float32)
+    s["colors"] = torch.rand(2, 300, 5, generator=torch.Generator().manual_seed(3))
+    bg = torch.rand(2, 5, generator=torch.Generator().manual_seed(4))
+    weights = torch.rand(2, 41, 50, 6, generator=torch.Generator().manual_seed(5))
+    fast = _render_with_grads(s, bg, weights, "numba", 50, 41)
+    ref = _render_with_grads(s, bg, weights, "torch", 50, 41)
+    assert fast[0].dtype == torch.float32 and fast[1].dtype == torch.float32
+    assert (fast[0] - ref[0]).abs().max() < 1e-5 and (fast[1] - ref[1]).abs().max() < 1e-5
+    # float64 kernels against float32 torch arithmetic: agreement to float32 precision, relative to each
+    # gradient's scale
+    for name, a, b in zip(list(s) + ["backgrounds"], fast[3], ref[3], strict=True):
+        assert a.dtype == torch.float32, name
+        assert (a - b).abs().max() <= 1e-4 * b.abs().max() + 1e-6, name
+
+
+def test_numba_matches_dense_reference():
+    pytest.importorskip("numba")
+    s = _hard_scene(120, seed=13)
+    bg = torch.tensor([[0.5, 0.1, 0.9], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    fast = rasterize_gaussians(**s, width=45, height=33, backgrounds=bg, far_plane=1e3, backend="numba")
+    ref = rasterize_gaussians(**s, width=45, height=33, backgrounds=bg, far_plane=1e3, backend="dense")
+    assert (fast[0] - ref[0]).abs().max() < 1e-10 and (fast[1] - ref[1]).abs().max() < 1e-10
+
+
+def test_numba_composite_gradcheck():
+    """torch.autograd.gradcheck of the compiled compositing alone, float64, away from every threshold."""
+    rn = pytest.importorskip("humanvdm_core.splat.rasterize_numba")
+    g = torch.Generator().manual_seed(6)
+    n, w, h = 6, 13, 11
+    means2d = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([w, h]) * 0.6 + 2.0
+    # Broad Gaussians (variances 40-60 px^2) with opacities 0.2-0.6: every alpha in the image stays above
+    # 1/255 and below the clamp, and T never nears 1e-4, so finite differences cross no cut-off.
+    cov = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    a, b, c = 40 + 20 * cov[:, 0], 10 * (cov[:, 1] - 0.5), 40 + 20 * cov[:, 2]
+    det = a * c - b * b
+    conics = torch.stack([c / det, -b / det, a / det], -1)
+    opacities = torch.rand(n, generator=g, dtype=torch.float64) * 0.4 + 0.2
+    colors = torch.rand(n, 4, generator=g, dtype=torch.float64)
+    depths = torch.rand(n, generator=g, dtype=torch.float64)
+    radii = torch.full((n, 2), 20, dtype=torch.int32)  # every Gaussian covers the whole image
+    bins = rn.bin_gaussians(means2d, radii, depths, 4, w, h)
+    assert bins.gids.size == n * math.ceil(w / 4) * math.ceil(h / 4)
+    inputs = tuple(t.clone().requires_grad_(True) for t in (means2d, conics, opacities, colors))
+    assert torch.autograd.gradcheck(lambda *x: rn.composite(*x, bins), inputs, eps=1e-6, atol=1e-7, rtol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numba_binning_matches_torch_intersections(dtype):
+    rn = pytest.importorskip("humanvdm_core.splat.rasterize_numba")
+    s = _hard_scene(500, seed=15, dtype=dtype)
+    s["means"][100:140] = s["means"][60:100]  # equal depths: ties keep index order in both
+    proj = rz.project_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], s["viewmats"], s["Ks"],
+                                70, 37, far_plane=1e3)
+    for cam in range(2):
+        m2, radii, depths = proj["means2d"][cam], proj["radii"][cam], proj["depths"][cam]
+        for tile in (4, 16):
+            tiles_w, tiles_h = math.ceil(70 / tile), math.ceil(37 / tile)
+            gids, tile_ids = rz._intersect_tiles(m2, radii, depths, tile, tiles_w, tiles_h)
+            bins = rn.bin_gaussians(m2, radii, depths, tile, 70, 37)
+            assert gids.numel() > 500 and torch.equal(torch.from_numpy(bins.gids), gids)
+            counts = torch.bincount(tile_ids, minlength=tiles_w * tiles_h)
+            assert torch.equal(torch.from_numpy(bins.starts).diff(), counts)
+            assert bins.order.tolist() == torch.nonzero(counts).flatten().tolist()  # busy tiles, row-major
+
+
+def test_numba_threads_follow_torch_and_results_are_deterministic():
+    rn = pytest.importorskip("humanvdm_core.splat.rasterize_numba")
+    import numba
+
+    s = _hard_scene(300, seed=14)
+    bg = torch.tensor([[0.1, 0.2, 0.3], [0.3, 0.2, 0.1]], dtype=torch.float64)
+    weights = torch.rand(2, 48, 64, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            with rn._Threads():
+                assert numba.get_num_threads() == min(threads, numba.config.NUMBA_NUM_THREADS)
+            results.append(_render_with_grads(s, bg, weights, "numba", 64, 48))
+    finally:
+        torch.set_num_threads(before)
+    one, two = results
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+    assert all(torch.equal(a, b) for a, b in zip(one[3], two[3], strict=True))
+
+
+def test_numba_empty_and_all_culled():
+    pytest.importorskip("numba")
+    viewmats, Ks = _camera()
+    bg = torch.tensor([[1.0, 0.5, 0.0]], dtype=torch.float64)
+    g = _one([0.0, 0.0, -3.0], 0.1)  # behind the camera
+    for scene in (g, {k: v[:0] for k, v in g.items()}):
+        leaves = {k: v.clone().requires_grad_(True) for k, v in scene.items()}
+        colors, alphas, meta = rasterize_gaussians(**leaves, viewmats=viewmats, Ks=Ks, width=20, height=10,
+                                                   backgrounds=bg, backend="numba")
+        assert torch.equal(colors.detach(), bg[0].expand(1, 10, 20, 3)) and alphas.abs().max() == 0
+        assert meta["n_intersections"] == [0]
+        colors.sum().backward()
+        assert all(v.grad is None or not v.grad.any() for v in leaves.values())
