@@ -1,7 +1,7 @@
 # The only commands a newcomer needs:
 #   make reconstruct INPUT=photo.png     install what is missing, then run the pipeline on a photo (or a folder)
 #   make test                            install what is missing, then run the test suite
-# Others: make setup | lint | bench | doctor | clean-venv
+# Others: make setup | lint | bench | experiments | doctor | clean-venv
 
 PYTHON ?= python3
 VENV   := .venv
@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed
 JOBS   ?= 1
 ARGS   ?=
 
-.PHONY: setup reconstruct test lint bench doctor clean-venv
+.PHONY: setup reconstruct test lint bench experiments doctor clean-venv
 
 setup: $(STAMP)
 
@@ -51,6 +51,10 @@ lint: setup
 
 bench: setup
 	$(PY) -m benchmarks.run $(BENCH)
+
+# The paper's experiments and ours through the scheduler's cache (benchmarks/README.md); ARGS=--quick: tiny settings
+experiments: setup
+	$(PY) -m benchmarks.experiments $(ARGS)
 
 doctor: setup
 	$(PY) -m humanvdm_core.doctor
