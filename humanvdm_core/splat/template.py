@@ -5,8 +5,9 @@ lies off the naked body (a dress, a coat, long hair, a held object) has no Gauss
 subject template starts from the subject's surface instead:
 
 - the clothed proxy that ``diffuse`` wrote beside its orbit (``proxy.npz``, see
-  :mod:`humanvdm_core.clothed_proxy`): points sampled uniformly by area on it, ``spacing`` apart, so
-  their count follows the subject's surface (:func:`proxy_points`);
+  :mod:`humanvdm_core.clothed_proxy`): points about ``spacing`` apart covering it evenly (random
+  candidates thinned by a Poisson-disk pass), so their count follows the subject's surface
+  (:func:`proxy_points`);
 - else the visual hull of the training views' silhouettes (:func:`visual_hull_points`): a voxel grid
   around the body carved by every view's mask, its surface voxels, merged with the fitted body's
   points that lie deeper than :data:`HULL_CONCAVITY` voxels inside the hull (concavities no
@@ -35,6 +36,8 @@ import torch
 from humanvdm_core.errors import InputError
 
 KNN = 4
+CANDIDATES = 6  # random candidates per kept point, thinned by a Poisson-disk pass ...
+DISK = 0.75  # ... whose radius is this x the spacing (so the count stays about area / spacing²)
 HULL_RESOLUTION = 128  # voxels along the longest side of the carving box
 HULL_MARGIN = 0.25  # metres around the body's box that the hull may reach
 HULL_MISSES = 0.1  # share of the views whose mask may disagree before a voxel is carved away
@@ -79,9 +82,51 @@ def surface_count(area: float, spacing: float) -> int:
     return max(64, int(round(area / (spacing * spacing))))
 
 
+def poisson_disk(candidates: np.ndarray, radius: float) -> np.ndarray:
+    """Indices of a subset of ``candidates`` (N, 3), taken greedily in their order, no two closer than
+    ``radius``: from candidates drawn at random on a surface, an even cover without clumps or gaps
+    (random points alone leave holes that show between small Gaussians at a high viewing resolution)."""
+    from numba import njit
+
+    @njit(cache=True)
+    def _greedy(p: np.ndarray, cell: np.ndarray, dims: np.ndarray, r2: float) -> np.ndarray:  # pragma: no cover
+        head = np.full(dims[0] * dims[1] * dims[2], -1, np.int64)
+        nxt = np.full(len(p), -1, np.int64)
+        keep = np.zeros(len(p), np.bool_)
+        for i in range(len(p)):
+            ok = True
+            for dx in range(-1, 2):
+                for dy in range(-1, 2):
+                    for dz in range(-1, 2):
+                        cx, cy, cz = cell[i, 0] + dx, cell[i, 1] + dy, cell[i, 2] + dz
+                        if cx < 0 or cy < 0 or cz < 0 or cx >= dims[0] or cy >= dims[1] or cz >= dims[2]:
+                            continue
+                        j = head[(cx * dims[1] + cy) * dims[2] + cz]
+                        while j >= 0 and ok:
+                            d = p[i] - p[j]
+                            if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] < r2:
+                                ok = False
+                            j = nxt[j]
+                if not ok:
+                    break
+            if ok:
+                keep[i] = True
+                c = (cell[i, 0] * dims[1] + cell[i, 1]) * dims[2] + cell[i, 2]
+                nxt[i] = head[c]
+                head[c] = i
+        return np.nonzero(keep)[0]
+
+    p = np.ascontiguousarray(candidates, np.float64)
+    lo = p.min(0)
+    cell = np.floor((p - lo) / radius).astype(np.int64)
+    dims = cell.max(0) + 1
+    return _greedy(p, cell, dims.astype(np.int64), radius * radius)
+
+
 def proxy_points(path: str | Path, spacing: float, seed: int = 0) -> np.ndarray:
-    """Points sampled uniformly by area (seeded) on the clothed proxy in ``path``, about ``spacing`` apart
-    (:func:`surface_count` of its area): a gown gets more than a T-shirt."""
+    """Points about ``spacing`` apart, evenly covering the clothed proxy in ``path``: :data:`CANDIDATES` x
+    :func:`surface_count` of its area drawn uniformly by area (seeded), thinned by :func:`poisson_disk`.
+    A gown gets more than a T-shirt."""
     from humanvdm_core.clothed_proxy import SCHEMA
     from humanvdm_core.io import read_npz
 
@@ -95,12 +140,13 @@ def proxy_points(path: str | Path, spacing: float, seed: int = 0) -> np.ndarray:
     if area.sum() <= 0:
         raise InputError(f"{path}: the clothed proxy has no area")
     rng = np.random.default_rng(seed)
-    count = surface_count(float(area.sum()), spacing)
+    count = CANDIDATES * surface_count(float(area.sum()), spacing)
     tri = rng.choice(len(f), size=count, p=area / area.sum())
     u, w = rng.random(count), rng.random(count)
     flip = u + w > 1
     u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
-    return a[tri] + u[:, None] * (b[tri] - a[tri]) + w[:, None] * (c[tri] - a[tri])
+    candidates = a[tri] + u[:, None] * (b[tri] - a[tri]) + w[:, None] * (c[tri] - a[tri])
+    return candidates[poisson_disk(candidates, DISK * spacing)]
 
 
 def _project(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +161,8 @@ def visual_hull_points(views, body_vertices: np.ndarray, spacing: float, seed: i
                        resolution: int = HULL_RESOLUTION) -> np.ndarray:
     """Surface points of the training views' visual hull, merged with the body's concavities (see the
     module docstring), about ``spacing`` apart (:func:`surface_count` of the hull's area, estimated as
-    its surface voxels' faces / :data:`VOXEL_STAIRS`): a seeded uniform draw of surface voxels (with
-    repeats when there are fewer), each point at a random place in its voxel."""
+    its surface voxels / :data:`VOXEL_STAIRS`): :data:`CANDIDATES` times that many random places in
+    randomly drawn surface voxels (seeded), thinned by :func:`poisson_disk`."""
     lo = body_vertices.min(0) - HULL_MARGIN
     hi = body_vertices.max(0) + HULL_MARGIN
     voxel = float((hi - lo).max()) / resolution
@@ -146,9 +192,10 @@ def visual_hull_points(views, body_vertices: np.ndarray, spacing: float, seed: i
             interior &= np.roll(padded, step, axis=axis)[1:-1, 1:-1, 1:-1]
     surface = np.argwhere(solid & ~interior)
     rng = np.random.default_rng(seed)
-    count = surface_count(len(surface) * voxel * voxel / VOXEL_STAIRS, spacing)
-    surface = surface[np.sort(rng.choice(len(surface), size=count, replace=len(surface) < count))]
+    count = CANDIDATES * surface_count(len(surface) * voxel * voxel / VOXEL_STAIRS, spacing)
+    surface = surface[rng.choice(len(surface), size=count, replace=True)]
     points = lo + (surface + rng.random(surface.shape)) * voxel
+    points = points[poisson_disk(points, DISK * spacing)]
     # the body's points deep inside the hull: concavities the silhouettes cannot carve
     depth = np.stack([cv2.distanceTransform(s.astype(np.uint8), cv2.DIST_L2, 3) for s in solid.astype(np.uint8)])
     cell = np.floor((body_vertices - lo) / voxel).astype(np.int64)
