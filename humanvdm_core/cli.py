@@ -1,6 +1,7 @@
 """``humanvdm``: run, explain and maintain the pipeline.
 
     humanvdm run INPUT... [--jobs N] [--force STAGE] [--until STAGE] [--set stage.param=value] [--dry-run]
+                 [--executor local|ray [--address auto|HOST:PORT]]
     humanvdm status INPUT...        per stage: would it run, and why
     humanvdm dag [--params]         the stages, their inputs and outputs
     humanvdm params [STAGE...]      every stage's params: default, type, choices, help (names for --set)
@@ -21,7 +22,8 @@ from pathlib import Path
 
 import yaml
 
-from humanvdm_core.errors import HumanVDMError
+from humanvdm_core.errors import DiskFullError, HumanVDMError, is_disk_full
+from humanvdm_core.executors import EXECUTORS, make_executor
 from humanvdm_core.pipeline import Pipeline, load_pipeline
 from humanvdm_core.scheduler import (
     BLOCKED,
@@ -41,6 +43,7 @@ from humanvdm_core.scheduler import (
 from humanvdm_core.store import Store
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+RAY_JOBS = 256  # stage runs in flight on Ray by default; the cluster's resources bound what runs at once
 PARAMS_HINT = ("Param names for --set STAGE.PARAM=VALUE (e.g. splat-optimize.preset=tiny):\n"
                "  humanvdm params [STAGE]   lists every stage's params with their defaults, choices and help.")
 KEY_OUTPUTS = ("splat-optimize/gaussians/point_cloud.ply", "splat-optimize/gaussians/point_cloud.splat",
@@ -54,10 +57,12 @@ def default_pipeline() -> Path:
 
 
 def parse_sets(items: list[str]) -> dict[str, dict[str, str]]:
+    """``--set`` items as {stage: {name: value}}; the stage is what precedes the first dot (stage names
+    have none), so ``stage.resources.num_gpus=1`` gives {"stage": {"resources.num_gpus": "1"}}."""
     out: dict[str, dict[str, str]] = {}
     for item in items:
         key, sep, value = item.partition("=")
-        stage, dot, param = key.rpartition(".")
+        stage, dot, param = key.partition(".")
         if not sep or not dot or not stage or not param:
             raise HumanVDMError(f"--set {item!r}: expected stage.param=value")
         out.setdefault(stage, {})[param] = value
@@ -87,7 +92,14 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog=PARAMS_HINT, formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_common(p)
     _add_selection(p)
-    p.add_argument("-j", "--jobs", type=int, default=1, help="stage runs in parallel (default 1)")
+    p.add_argument("-j", "--jobs", type=int, default=None,
+                   help="stage runs in parallel (default 1; with --executor ray: stage runs in flight, "
+                        f"default {RAY_JOBS}, which Ray queues by the resources each asks for)")
+    p.add_argument("--executor", choices=EXECUTORS, default="local",
+                   help="where stage runs execute: this machine (default), or Ray tasks on a cluster (needs the "
+                        "'cluster' extra and a store every node sees, e.g. --store /nfs/artifacts)")
+    p.add_argument("--address", default=None, metavar="auto|HOST:PORT",
+                   help="the Ray cluster to use with --executor ray (default: $RAY_ADDRESS, else a new local one)")
     p.add_argument("--threads", type=int, default=None, metavar="N",
                    help="compute threads per stage run (default: the cores this process may use, divided by --jobs)")
     p.add_argument("--dry-run", action="store_true", help="say what would run, run nothing")
@@ -138,6 +150,11 @@ def main(argv: list[str] | None = None) -> int:
         return COMMANDS[args.command](args)
     except HumanVDMError as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if not is_disk_full(e):
+            raise
+        print(f"error: {DiskFullError(Path(getattr(args, 'store', None) or e.filename or '.').resolve())}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into `head` and the like
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -190,12 +207,18 @@ def cmd_run(args) -> int:
     pipe = _pipeline(args)
     store = Store(args.store)
     mode = "quiet" if args.quiet else "plain" if args.no_progress else "auto"
-    sched = _scheduler(args, pipe, store, jobs=args.jobs, threads=args.threads, progress=mode, progress_interval=args.progress_interval)
-    subjects = _subjects(args, store, pipe)
-    if args.dry_run:
-        _print_status(sched.status(subjects))
-        return 0
-    summary = sched.run(subjects)
+    executor = make_executor(args.executor, args.address)
+    jobs = args.jobs if args.jobs is not None else RAY_JOBS if args.executor == "ray" else 1
+    try:
+        sched = _scheduler(args, pipe, store, jobs=jobs, threads=args.threads, progress=mode,
+                           progress_interval=args.progress_interval, executor=executor)
+        subjects = _subjects(args, store, pipe)
+        if args.dry_run:
+            _print_status(sched.status(subjects))
+            return 0
+        summary = sched.run(subjects)
+    finally:
+        executor.close()
     ran, cached = summary.count(RAN), summary.count(CACHED)
     print(f"\n{len(subjects)} input(s): {ran} stage run(s) ran, {cached} cached, "
           f"{summary.count(FAILED)} failed, {summary.count(SKIPPED)} skipped")
@@ -207,7 +230,7 @@ def cmd_run(args) -> int:
         for w in r.warnings:
             print(f"warning {r.label}: {user_names(r, w)}")
     for r in summary.failed:
-        print(f"FAILED {r.label}: {r.reason}\n  log: {r.log}")
+        print(f"FAILED {r.label}: {r.reason}" + (f"\n  log: {r.log}" if r.log else ""))
     done = {r.subject.name for r in summary.runs if r.state in (RAN, CACHED)}
     for s in subjects:
         if s.name in done:
@@ -278,7 +301,11 @@ def cmd_dag(args) -> int:
         ins = ", ".join(f"{k}<-{' | '.join(map(str, v))}{'?' if k in sd.optional else ''}"
                         for k, v in sd.inputs.items())
         flag = "" if sd.implemented else "  [not implemented yet]"
-        print(f"{name}{flag}\n    module: {sd.module}  backend: {sd.backend}\n    in:  {ins}\n    out: {', '.join(sd.outputs)}")
+        res = sd.resources
+        wants = f"num_cpus={res.num_cpus:g} num_gpus={res.num_gpus:g}" + (f" memory={res.memory / 1e9:g}GB" if res.memory else "")
+        wants += "".join(f"; {name}={value}: {fields}" for name, value, fields in sd.resources_when)
+        print(f"{name}{flag}\n    module: {sd.module}  backend: {sd.backend}\n    in:  {ins}\n    out: {', '.join(sd.outputs)}"
+              f"\n    resources: {wants}")
     return 0
 
 

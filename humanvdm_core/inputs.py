@@ -5,15 +5,19 @@
 - a folder of images -> one ``photo`` subject per image (``*_mask.*`` files are skipped);
 - a folder of scan folders (the THuman2.0 layout ``NNNN/NNNN.obj``) -> one ``scan`` per folder.
 
-Subject names come from file or folder names and are made unique within a batch.
+Subject names come from file or folder names, in any script ("Jürgen Müller.jpg" -> ``Jürgen_Müller``,
+"写真.png" -> ``写真``; runs of spaces, slashes and other non-word characters become ``_``), and are made
+unique within a batch. An empty input file is not refused here: its subject's first stage fails with
+"PATH is empty (0 bytes)" and the rest of a batch runs.
 """
 
 from __future__ import annotations
 
 import re
+import unicodedata
 from pathlib import Path
 
-from humanvdm_core.errors import InputError
+from humanvdm_core.errors import HumanVDMError, InputError
 from humanvdm_core.scheduler import Subject
 from humanvdm_core.store import Store
 
@@ -73,18 +77,26 @@ def _discover_one(p: Path, kind: str | None) -> list[Subject]:
 def _unique_names(subjects: list[Subject]) -> None:
     seen: dict[str, int] = {}
     for s in subjects:
-        base = re.sub(r"[^A-Za-z0-9._-]+", "_", s.name).strip("._") or "input"
+        base = re.sub(r"[^\w.-]+", "_", unicodedata.normalize("NFC", s.name)).strip("._") or "input"
         n = seen.get(base, 0)
         seen[base] = n + 1
         s.name = base if n == 0 else f"{base}-{n + 1}"
 
 
-def import_subject(store: Store, subject: Subject) -> str:
+def import_subject(store: Store, subject: Subject) -> str | None:
     """Put the subject's files in the store (once) and set ``subject.input_id``.
 
-    A file that cannot be read (permissions, I/O error) raises :class:`InputError` naming it."""
+    A file that cannot be read (permissions, I/O error) raises :class:`InputError` naming it; a full
+    disk raises :class:`~humanvdm_core.errors.DiskFullError`. An empty file is not imported: it sets
+    ``subject.error`` (its stages fail with it) and returns None."""
+    src = subject.source
     try:
+        if src.is_file() and src.stat().st_size == 0:
+            subject.error = f"{src} is empty (0 bytes)"
+            return None
         return _import(store, subject)
+    except HumanVDMError:
+        raise
     except OSError as e:
         where = Path(e.filename or subject.source)
         if where.is_relative_to(store.root):

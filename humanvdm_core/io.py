@@ -10,14 +10,19 @@ Contracts:
   of the stored pixels and caller-supplied ``humanvdm:*`` attributes (what produced it). Attributes
   must not hold run-specific values (times, run keys): they would change the artifact's id.
 - NPZ: named arrays plus ``__schema__`` (name) and ``__schema_version__``; readers check both.
+- A write that fails because the disk is full raises ``OSError`` with errno ENOSPC (OpenImageIO
+  reports only "File output failed": an EXR write that fails while the destination's file system
+  has less room than the image's pixels is reported as ENOSPC), and leaves no temporary file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import io
 import os
+import shutil
 import tempfile
 import zipfile
 from collections.abc import Iterator, Mapping
@@ -104,11 +109,23 @@ def write_exr(
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"cannot write EXR {path}: {oiio.geterror()}")
+            raise _write_error(path, f"cannot write EXR {path}: {oiio.geterror()}", half.nbytes)
         ok = out.write_image(half)
         out.close()
         if not ok:
-            raise OSError(f"cannot write EXR {path}: {out.geterror()}")
+            raise _write_error(path, f"cannot write EXR {path}: {out.geterror()}", half.nbytes)
+
+
+def _write_error(path: str | os.PathLike, message: str, nbytes: int) -> OSError:
+    """The error for a failed write of ``nbytes`` to ``path`` by a library that does not say why:
+    ENOSPC when its file system has less room than that (checked while the partial file is there)."""
+    try:
+        free = shutil.disk_usage(Path(path).parent).free
+    except OSError:
+        free = nbytes
+    if free < nbytes:
+        return OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({message})", str(path))
+    return OSError(message)
 
 
 def read_exr(path: str | os.PathLike, with_attrs: bool = False):

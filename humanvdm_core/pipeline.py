@@ -13,6 +13,20 @@ Format::
         outputs: [frames]
         params: {target_size: 1080}             # override the stage's own defaults
         backend: embedded
+        resources: {num_cpus: 1, memory: 2GB}   # what one run needs (the Ray executor asks for it)
+
+``resources`` (all optional): ``num_cpus`` (default 1), ``num_gpus`` (default 0), ``memory`` (bytes,
+or a string such as ``512MB``/``8GB``/``2GiB``; default: none asked). Its ``when`` maps a setting of
+the run, ``backend=NAME`` or ``PARAM=VALUE`` (as ``--set`` writes them), to resources that replace
+those fields when the run's resolved backend or param has that value, in the order written::
+
+        resources:
+          num_cpus: 1
+          when: {backend=sv3d_p: {num_gpus: 1, memory: 16GB}}
+
+``--set stage.resources.num_gpus=1`` overrides the result. Resources never join a stage run's key
+(they change where it runs, not what it computes); the local executor ignores them (``--jobs``
+bounds what runs at once there).
 
 An input reference is ``$name`` (a run input) or ``stage.output``; ``a | b`` lists alternatives,
 the first one available in the run is used (a photo run has ``diffuse``, a scan run has
@@ -22,8 +36,9 @@ shown, never run, and the stages that need it are blocked.
 
 Validation raises :class:`ConfigError` naming the stage for: invalid YAML or duplicate keys,
 unknown keys, cycles, references to unknown stages/outputs/inputs, duplicate outputs, params the
-stage does not declare or of the wrong type, unknown backends, and a module whose declared
-inputs/outputs differ from the YAML.
+stage does not declare or of the wrong type, unknown backends, a module whose declared
+inputs/outputs differ from the YAML, and resources that are unknown, negative or conditioned on an
+unknown backend or param.
 """
 
 from __future__ import annotations
@@ -32,8 +47,9 @@ import ast
 import hashlib
 import importlib
 import importlib.util
+import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -43,7 +59,9 @@ import yaml
 from humanvdm_core.errors import ConfigError
 from humanvdm_core.stage import StageSpec
 
-_STAGE_KEYS = {"module", "inputs", "outputs", "params", "backend", "help"}
+_STAGE_KEYS = {"module", "inputs", "outputs", "params", "backend", "help", "resources"}
+_MEMORY_UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
+                 "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -74,6 +92,48 @@ class Ref:
         return f"${self.name}" if self.stage is None else f"{self.stage}.{self.name}"
 
 
+@dataclass(frozen=True)
+class Resources:
+    """What one run of a stage needs where it runs (a Ray task's resources); never part of its key."""
+
+    num_cpus: float = 1.0
+    num_gpus: float = 0.0
+    memory: int | None = None  # bytes
+
+    def updated(self, stage: str, fields: dict[str, Any]) -> Resources:
+        """A copy with ``fields`` (from YAML or ``--set``) parsed and applied; ConfigError names the stage."""
+        out = {}
+        for key, value in fields.items():
+            if key in ("num_cpus", "num_gpus"):
+                try:
+                    number = float(value)
+                except (TypeError, ValueError):
+                    number = -1.0
+                if isinstance(value, bool) or not number >= 0:
+                    raise ConfigError(f"stage {stage}: resources.{key} must be a number >= 0, not {value!r}")
+                out[key] = number
+            elif key == "memory":
+                out[key] = parse_memory(stage, value)
+            else:
+                raise ConfigError(f"stage {stage}: unknown resource {key!r}; known: num_cpus, num_gpus, memory (and when)")
+        return replace(self, **out)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"num_cpus": self.num_cpus, "num_gpus": self.num_gpus, "memory": self.memory}
+
+
+def parse_memory(stage: str, value: Any) -> int | None:
+    """Bytes from an int or a string like ``512MB``, ``8GB``, ``2GiB`` (None/0: not asked)."""
+    if value is None:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return value or None
+    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([A-Za-z]*)\s*", str(value))
+    if m is None or m.group(2).lower() not in _MEMORY_UNITS or isinstance(value, bool):
+        raise ConfigError(f"stage {stage}: resources.memory {value!r} is not a size (bytes, or e.g. 512MB, 8GB, 2GiB)")
+    return int(float(m.group(1)) * _MEMORY_UNITS[m.group(2).lower()]) or None
+
+
 @dataclass
 class StageDef:
     name: str
@@ -85,10 +145,21 @@ class StageDef:
     help: str = ""
     optional: set[str] = field(default_factory=set)  # inputs marked ``?``: the stage runs without them
     spec: StageSpec | None = None  # None: module not implemented yet
+    resources: Resources = field(default_factory=Resources)
+    resources_when: list[tuple[str, str, dict[str, Any]]] = field(default_factory=list)  # (name, value, fields)
 
     @property
     def implemented(self) -> bool:
         return self.spec is not None
+
+    def resources_for(self, params: dict[str, Any], backend: str) -> Resources:
+        """The resources of a run with these resolved params and backend (``when`` applied in order)."""
+        out = self.resources
+        for name, value, fields in self.resources_when:
+            current = backend if name == "backend" else params.get(name)
+            if _setting_text(current) == value:
+                out = out.updated(self.name, fields)
+        return out
 
 
 @dataclass
@@ -189,10 +260,40 @@ def load_pipeline(path: str | Path) -> Pipeline:
         params = body.get("params") or {}
         if not isinstance(params, dict):
             raise ConfigError(f"stage {name}: params must be a mapping")
+        resources, when = _parse_resources(name, body.get("resources"))
         pipe.stages[name] = StageDef(name, str(body["module"]), inputs, outputs, dict(params),
-                                     str(body.get("backend", "embedded")), str(body.get("help", "")), optional)
+                                     str(body.get("backend", "embedded")), str(body.get("help", "")), optional,
+                                     resources=resources, resources_when=when)
     _validate(pipe)
     return pipe
+
+
+def _setting_text(value: Any) -> str:
+    """A param value as ``--set`` and ``when`` write it (booleans lower-case)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+def _parse_resources(stage: str, body: Any) -> tuple[Resources, list[tuple[str, str, dict[str, Any]]]]:
+    if body is None:
+        return Resources(), []
+    if not isinstance(body, dict):
+        raise ConfigError(f"stage {stage}: resources must be a mapping (num_cpus, num_gpus, memory, when)")
+    body = dict(body)
+    when_body = body.pop("when", None) or {}
+    resources = Resources().updated(stage, body)
+    if not isinstance(when_body, dict):
+        raise ConfigError(f"stage {stage}: resources.when must map NAME=VALUE to resources")
+    when = []
+    for cond, fields in when_body.items():
+        name, sep, value = str(cond).partition("=")
+        if not sep or not name.strip() or not isinstance(fields, dict):
+            raise ConfigError(f"stage {stage}: resources.when: expected 'backend=NAME' or 'PARAM=VALUE' "
+                              f"mapped to resources, got {cond!r}")
+        resources.updated(stage, fields)  # validates the fields
+        when.append((name.strip(), value.strip(), dict(fields)))
+    return resources, when
 
 
 def _validate(pipe: Pipeline) -> None:
@@ -220,6 +321,12 @@ def _validate(pipe: Pipeline) -> None:
                               f"{sd.outputs}, module {sd.module} has {sorted(sd.spec.inputs)} / {list(sd.spec.outputs)}")
         sd.spec.check_backend(sd.backend)
         sd.spec.resolve_params(sd.params)
+        for name, value, _ in sd.resources_when:
+            if name == "backend":
+                sd.spec.check_backend(value)
+            elif name not in sd.spec.params:
+                raise ConfigError(f"stage {sd.name}: resources.when: unknown param {name!r}; "
+                                  f"known: backend, {', '.join(sorted(sd.spec.params))}")
 
 
 def _topological(pipe: Pipeline) -> list[str]:

@@ -11,10 +11,19 @@ committed to the store, and a record is written. A downstream stage's key contai
 artifact *ids*, so when an upstream rerun reproduces the same bytes the downstream stage is a hit
 (early cutoff).
 
-Independent stage runs (other subjects, parallel branches) go to a bounded pool (``jobs``). A
-failure skips only what depends on it. Per subject, ``runs/<subject>/humanvdm.lock`` records every
-stage's key, params, input and output ids, backend, wall time, peak memory and versions, and
+Independent stage runs (other subjects, parallel branches) go to a bounded pool (``jobs``) and
+run on an executor (:mod:`humanvdm_core.executors`: subprocesses here, or Ray tasks on a cluster);
+keys, cache lookups and commits always happen here, in the driver. A failure skips only what
+depends on it. Per subject, ``runs/<subject>/humanvdm.lock`` records every stage's key, params,
+input and output ids, backend, wall time, peak memory and versions, and
 ``runs/<subject>/<stage>/<output>`` links to the artifacts.
+
+Faults: a run first removes staging folders of dead runs on this host; a stage process dies with
+the process that started it (see :mod:`humanvdm_core.stage`); a full disk, in the stage or while
+committing, fails that stage run with one line ("no space left on device writing STORE; free N MB
+and rerun", N: the larger of what the stage had written when the disk filled and what the same
+stage's outputs took earlier in this run) and leaves no staging folder and no record; messages
+name the user's input file, never the store's copy of it.
 
 While it runs, each stage process reports its own progress through ``runs/<subject>/logs/<stage>.progress``
 (the channel of :mod:`humanvdm_core.progress`, named in ``$HUMANVDM_PROGRESS``); a
@@ -29,11 +38,9 @@ import json
 import os
 import platform
 import re
-import shutil
-import subprocess
-import sys
 import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from importlib import metadata
@@ -42,12 +49,14 @@ from typing import Any
 
 import yaml
 
-from humanvdm_core.errors import ConfigError, HumanVDMError
+from humanvdm_core.errors import ConfigError, DiskFullError, HumanVDMError, is_disk_full
+from humanvdm_core.executors import LocalExecutor, RayExecutor, StageCommand
 from humanvdm_core.hashing import hash_tree
 from humanvdm_core.io import atomic_write_text
-from humanvdm_core.pipeline import Pipeline, Ref, code_fingerprint
+from humanvdm_core.pipeline import Pipeline, Ref, Resources, code_fingerprint
 from humanvdm_core.progress import PROGRESS_ENV, Display
-from humanvdm_core.store import Store
+from humanvdm_core.stage import EXIT_NO_SPACE
+from humanvdm_core.store import Store, discard, tree_size
 from humanvdm_core.threads import stage_threads, thread_env
 
 LOCK_NAME = "humanvdm.lock"
@@ -70,6 +79,7 @@ class Subject:
     kind: str
     source: Path
     input_id: str | None = None
+    error: str | None = None  # why the input cannot be used (e.g. an empty file): its stages fail with this
 
 
 @dataclass
@@ -87,6 +97,7 @@ class StageRun:
     peak_rss_mb: float | None = None
     log: Path | None = None
     warnings: list[str] = field(default_factory=list)  # the stage's own warnings (kept with its record)
+    user_paths: dict[str, str] = field(default_factory=dict)  # store path of an input file -> the user's path
 
     @property
     def label(self) -> str:
@@ -121,6 +132,7 @@ class Scheduler:
         threads: int | None = None,
         progress: str | bool | None = None,
         progress_interval: float | None = None,
+        executor: LocalExecutor | RayExecutor | None = None,
     ):
         self.pipeline = pipeline
         self.store = store
@@ -144,6 +156,12 @@ class Scheduler:
             for stage, backend in backends.items():
                 stages[stage] = replace(stages[stage], backend=stages[stage].spec.check_backend(backend))
             pipeline = self.pipeline = replace(pipeline, stages=stages)
+        # `--set stage.resources.num_gpus=1`: applied after pipeline.yaml's resources and their `when`
+        self.resource_overrides = {s: {k.partition(".")[2]: o.pop(k) for k in list(o) if k.startswith("resources.")}
+                                   for s, o in self.overrides.items()}
+        for stage, fields in self.resource_overrides.items():
+            Resources().updated(stage, fields)  # fail now on a bad value
+        self.executor = executor or LocalExecutor()
         for stage in self.force | ({until} if until else set()):
             if stage not in pipeline.stages:
                 raise ConfigError(f"unknown stage {stage!r}; stages: {list(pipeline.stages)}")
@@ -151,7 +169,8 @@ class Scheduler:
         self._fingerprints: dict[str, str] = {}
         self._lock = threading.Lock()
         self._fp_lock = threading.Lock()
-        self._procs: set[subprocess.Popen] = set()
+        self._key_locks: dict[str, threading.Lock] = {}  # one stage-run key runs once in this process
+        self._output_bytes: dict[str, int] = {}  # per stage: the largest output committed in this run
         self._versions: dict[str, str] | None = None
         self._lockfiles: dict[str, dict] = {}
         self._dirty: set[str] = set()
@@ -184,7 +203,9 @@ class Scheduler:
                     if wanted is not None and name not in wanted:
                         continue
                     run = StageRun(subj, name, chosen, [by_stage[r.stage] for r in chosen.values() if r.stage])
-                    if not sd.implemented:
+                    if subj.error and any(r.stage is None for r in chosen.values()):
+                        run.state, run.reason = FAILED, subj.error
+                    elif not sd.implemented:
                         run.state, run.reason = NOT_IMPLEMENTED, f"not implemented yet (no module {sd.module})"
                     else:
                         missing = [d.stage for d in run.deps if d.state in (NOT_IMPLEMENTED, BLOCKED)]
@@ -227,15 +248,35 @@ class Scheduler:
                     out[name] = "missing"
         return out
 
+    def resources(self, stage: str) -> Resources:
+        """What one run of ``stage`` asks of an executor: pipeline.yaml's resources, their ``when`` for the
+        resolved params and backend, then ``--set stage.resources.X=V``."""
+        sd = self.pipeline.stages[stage]
+        out = sd.resources_for(self.params[stage], sd.backend)
+        return out.updated(stage, self.resource_overrides.get(stage, {}))
+
     def _resolve_inputs(self, run: StageRun) -> None:
         run.inputs = {}
         for inp, ref in run.chosen.items():
             if ref.stage is None:
                 run.inputs[inp] = run.subject.input_id
+                run.user_paths.update(self._user_paths(run.subject))
             else:
                 dep = next(d for d in run.deps if d.stage == ref.stage)
                 run.inputs[inp] = dep.outputs[ref.name]
         run.key = _hash_json(self.key_material(run))
+
+    def _user_paths(self, subject: Subject) -> dict[str, str]:
+        """The store's paths of a subject's input files (and folder) -> the user's own paths."""
+        if subject.input_id is None:
+            return {}
+        obj = self.store.object_path(subject.input_id)
+        src = subject.source
+        files = self.store.manifest(subject.input_id) or {}
+        out = {str(obj / rel): str(src if src.is_file() else src / rel) for rel in files}
+        if src.is_dir():
+            out[str(obj)] = str(src)
+        return out
 
     # ------------------------------------------------------------------ status
 
@@ -244,7 +285,11 @@ class Scheduler:
         runs = self.plan(subjects)
         locks = {s.name: read_lockfile(self.store, s.name) for s in subjects}
         for run in runs:
-            if run.state in (NOT_IMPLEMENTED, BLOCKED):
+            if run.state in (NOT_IMPLEMENTED, BLOCKED, FAILED):
+                continue
+            bad = [d for d in run.deps if d.state in (FAILED, SKIPPED)]
+            if bad:
+                run.state, run.reason = SKIPPED, f"upstream {bad[0].stage} {bad[0].state}"
                 continue
             pending = [d.stage for d in run.deps if d.state != UP_TO_DATE]
             if pending:  # input ids unknown until upstream runs; own changes still tell
@@ -302,6 +347,7 @@ class Scheduler:
         runs = self.plan(subjects)
         todo = [r for r in runs if r.state == "pending"]
         with self.store.shared_use():
+            self.store.clean_stale_staging()  # partial outputs of runs killed on this host
             display = Display(self.progress, total=len(todo), interval=self.progress_interval)
             try:
                 self._execute(todo, display)
@@ -334,13 +380,20 @@ class Scheduler:
                         run = futures.pop(fut)
                         exc = fut.exception()
                         if exc is not None:
-                            run.state, run.reason = FAILED, f"{type(exc).__name__}: {exc}"
+                            run.state, run.reason = FAILED, self._failure_text(exc)
                         self._report(run, display)
             except BaseException:  # Ctrl-C: stop the running stages before the pool waits for them
                 for fut in futures:
                     fut.cancel()
-                self._kill_children()
+                self.executor.stop_all()
                 raise
+
+    def _failure_text(self, exc: BaseException) -> str:
+        if is_disk_full(exc) and not isinstance(exc, DiskFullError):
+            return str(DiskFullError(self.store.root))
+        if isinstance(exc, HumanVDMError):
+            return str(exc)
+        return f"{type(exc).__name__}: {exc}"
 
     def _report(self, run: StageRun, display) -> None:
         timing = f" in {run.wall_s:.1f} s" if run.state == RAN and run.wall_s is not None else ""
@@ -354,8 +407,8 @@ class Scheduler:
         forced = run.stage in self.force
         record = None if forced else self.store.get_record(run.key)
         if record is None:
-            with self.store.key_lock(run.key):
-                record = None if forced else self.store.get_record(run.key)  # another process may have made it
+            with self._key_lock(run.key):
+                record = None if forced else self.store.get_record(run.key)  # another run may have made it
                 if record is None:
                     record = self._execute_stage(run)
                     if record is None:
@@ -369,67 +422,110 @@ class Scheduler:
         run.warnings = list(record.get("warnings") or [])
         self._update_view(run, sd.backend, record)
 
-    def _execute_stage(self, run: StageRun) -> dict | None:
-        sd = self.pipeline.stages[run.stage]
-        staging = self.store.new_staging_dir(run.stage)
-        outputs = {o: staging / o for o in sd.outputs}
-        inputs = {k: self.store.object_path(v) for k, v in run.inputs.items()}
-        argv = sd.spec.argv(inputs, outputs, self.params[run.stage], sd.backend)
-        cmd = [sys.executable, "-m", sd.module, *argv]
-        log_dir = self.store.root / "runs" / run.subject.name / "logs"
-        log_dir.mkdir(parents=True, exist_ok=True)
-        run.log = log_dir / f"{run.stage}.log"
-        progress_file = log_dir / f"{run.stage}.progress"  # the stage's progress channel (humanvdm_core.progress)
-        progress_file.write_bytes(b"")
+    @contextlib.contextmanager
+    def _key_lock(self, key: str) -> Iterator[None]:
+        """Held while a stage-run key is looked up and computed: a thread lock (the same key twice in one
+        batch runs once), plus the store's file lock when the executor runs stages on this machine (other
+        processes sharing the store wait). The Ray executor takes no file lock: this driver is the store's
+        single committer, and a commit is an atomic rename, so at worst two drivers compute a key twice."""
+        with self._lock:
+            lock = self._key_locks.setdefault(key, threading.Lock())
+        with lock:
+            if self.executor.uses_file_locks:
+                with self.store.key_lock(key):
+                    yield
+            else:
+                yield
+
+    def _stage_env(self, progress_file: Path, resources: Resources) -> dict[str, str]:
+        """What a stage process's environment adds to the executing machine's: unbuffered output, the
+        progress channel, the pipeline's folder on PYTHONPATH, and its compute-thread budget (locally: the
+        cores / --jobs or --threads; on Ray: the task's num_cpus or --threads)."""
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PROGRESS_ENV] = str(progress_file)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(self.pipeline.path.parent), env.get("PYTHONPATH")]))
-        env = thread_env(stage_threads(self.jobs, self.threads), env, override=self.threads is not None)
-        t0 = time.perf_counter()
-        with open(run.log, "w") as log:
-            log.write("$ " + " ".join(cmd) + "\n")
-            log.flush()
-            if self._display is not None:
-                self._display.started(id(run), run.subject.name, run.stage, progress_file, run.log)
-            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=self.pipeline.path.parent, env=env)
-            with self._lock:
-                self._procs.add(proc)
-            try:
-                _, status, rusage = os.wait4(proc.pid, 0)
-                proc.returncode = os.waitstatus_to_exitcode(status)
-            finally:
-                with self._lock:
-                    self._procs.discard(proc)
-        wall = time.perf_counter() - t0
-        run.wall_s, run.peak_rss_mb = wall, rusage.ru_maxrss / 1024.0
-        if proc.returncode != 0:
+        if isinstance(self.executor, LocalExecutor):
+            env = thread_env(stage_threads(self.jobs, self.threads), env, override=self.threads is not None)
+        else:
+            env = thread_env(stage_threads(1, self.threads or max(1, round(resources.num_cpus))), env, override=True)
+        return {k: v for k, v in env.items() if os.environ.get(k) != v}
+
+    def _execute_stage(self, run: StageRun) -> dict | None:
+        """Run one stage run on the executor into a fresh staging folder, then (here, in the driver)
+        commit its outputs and write its record. Returns the record, or None with ``run`` FAILED. The
+        staging folder is gone afterwards, whatever happened."""
+        staging: Path | None = None
+        try:
+            staging = self.store.new_staging_dir(run.stage)
+            return self._execute_in(run, staging)
+        except OSError as e:
+            if not is_disk_full(e):
+                raise
+            run.state, run.reason = FAILED, str(DiskFullError(self.store.root, self._space_needed(run, staging)))
+            return None
+        except DiskFullError as e:  # from a commit, which already removed what it staged
+            run.state, run.reason = FAILED, str(DiskFullError(e.where, max(e.need_bytes, self._space_needed(run, None))))
+            return None
+        finally:
+            if staging is not None:
+                discard(staging)
+
+    def _execute_in(self, run: StageRun, staging: Path) -> dict | None:
+        sd = self.pipeline.stages[run.stage]
+        outputs = {o: staging / o for o in sd.outputs}
+        inputs = {k: self.store.object_path(v) for k, v in run.inputs.items()}
+        argv = sd.spec.argv(inputs, outputs, self.params[run.stage], sd.backend)
+        log_dir = self.store.root / "runs" / run.subject.name / "logs"
+        log_dir.mkdir(parents=True, exist_ok=True)
+        run.log = log_dir / f"{run.stage}.log"
+        run.log.write_bytes(b"")  # the executor appends: one log per stage run, every attempt in it
+        progress_file = log_dir / f"{run.stage}.progress"  # the stage's progress channel (humanvdm_core.progress)
+        progress_file.write_bytes(b"")
+        resources = self.resources(run.stage)
+        command = StageCommand(label=run.label, argv=["-m", sd.module, *argv], cwd=str(self.pipeline.path.parent),
+                               env=self._stage_env(progress_file, resources), log=str(run.log),
+                               outputs=[str(p) for p in outputs.values()], resources=resources)
+        if self._display is not None:
+            self._display.started(id(run), run.subject.name, run.stage, progress_file, run.log)
+        result = self.executor.run(command)
+        run.wall_s, run.peak_rss_mb = result.wall_s, result.peak_rss_mb
+        if result.returncode != 0:
             run.state = FAILED
-            run.reason = user_names(run, _error_line(run.log)) or f"exit code {proc.returncode}"
-            _discard(staging)
+            line = _error_line(run.log)
+            if result.returncode == EXIT_NO_SPACE or is_disk_full(line):
+                run.reason = str(DiskFullError(self.store.root, self._space_needed(run, staging)))
+            else:
+                run.reason = user_names(run, line) or f"exit code {result.returncode}"
             return None
         out_ids = {}
         for name, path in outputs.items():
             if not path.is_dir() or not any(path.rglob("*")):
                 run.state, run.reason = FAILED, f"stage wrote nothing to its output {name}"
-                _discard(staging)
                 return None
+        size = tree_size(staging)
+        for name, path in outputs.items():
             out_ids[name] = self.store.commit_dir(path)
+        with self._lock:
+            self._output_bytes[run.stage] = max(size, self._output_bytes.get(run.stage, 0))
         record = {
             **self.key_material(run),
             "key": run.key,
             "outputs": out_ids,
-            "wall_s": round(wall, 3),
-            "peak_rss_mb": round(run.peak_rss_mb, 1),
+            "wall_s": round(result.wall_s, 3),
+            "peak_rss_mb": round(result.peak_rss_mb, 1),
             "warnings": _warning_lines(run.log),
             "versions": self.versions(),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
-        self.store.put_record(run.key, record)
-        try:
-            staging.rmdir()
-        except OSError:
-            pass
+        self.store.put_record(run.key, record)  # the commit point: before it, nothing is a cache hit
         return record
+
+    def _space_needed(self, run: StageRun, staging: Path | None) -> int:
+        """Bytes a stage run needs, at least: what it had staged when the disk filled, or what the same
+        stage's largest output took earlier in this run, whichever is larger."""
+        staged = tree_size(staging) if staging is not None else 0
+        with self._lock:
+            return max(staged, self._output_bytes.get(run.stage, 0))
 
     def _update_view(self, run: StageRun, backend: str, record: dict) -> None:
         view = self.store.root / "runs" / run.subject.name
@@ -445,6 +541,7 @@ class Scheduler:
             os.replace(tmp, link)
         entry = {k: record.get(k) for k in ("key", "module", "code", "params", "backend", "weights", "inputs",
                                             "outputs", "wall_s", "peak_rss_mb", "warnings", "versions")}
+        entry["warnings"] = [user_names(run, w) for w in entry["warnings"] or []]  # this subject's file names
         entry["status"] = run.state
         with self._lock:
             lock = self._lockfiles.get(run.subject.name)
@@ -473,17 +570,6 @@ class Scheduler:
                     pass
             self._versions = v
         return self._versions
-
-    def _kill_children(self) -> None:
-        with self._lock:
-            procs = list(self._procs)
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except (subprocess.TimeoutExpired, ChildProcessError):
-                p.kill()
 
 
 # ---------------------------------------------------------------------- lockfiles
@@ -547,20 +633,20 @@ def _warning_lines(log: Path | None) -> list[str]:
 
 
 def user_names(run: StageRun, message: str | None) -> str | None:
-    """A stage reads a single-file input from the store as ``input.<ext>``: name the user's file instead."""
+    """``message`` with the store's copies of the run's input files named as the user named them.
+
+    A stage reads a run input from the store (``.../objects/ab/<id>/input.jpg``, a single file stored
+    as ``input.<ext>``); the user knows it as the path they gave. Full store paths are replaced first
+    (``run.user_paths``, set when the run's inputs are resolved), then a bare ``input.<ext>``."""
+    if not message:
+        return message
+    for stored in sorted(run.user_paths, key=len, reverse=True):
+        message = message.replace(stored, run.user_paths[stored])
     src = run.subject.source
-    if not message or not src.is_file() or not any(ref.stage is None for ref in run.chosen.values()):
+    if not src.is_file() or not any(ref.stage is None for ref in run.chosen.values()):
         return message
     stored = f"input{src.suffix.lower()}"  # the name Store.import_path gives a single file
     return re.sub(rf"(?<![\w./-]){re.escape(stored)}\b", lambda _: str(src), message)
-
-
-def _discard(staging: Path) -> None:
-    """Remove a failed stage's staging folder (partial outputs; its log stays in runs/<subject>/logs)."""
-    for p in [staging, *staging.rglob("*")]:
-        with contextlib.suppress(OSError):
-            p.chmod(0o755 if p.is_dir() else 0o644)
-    shutil.rmtree(staging, ignore_errors=True)
 
 
 __all__ = ["Scheduler", "Subject", "StageRun", "Summary", "HumanVDMError", "referenced_ids", "user_names"]

@@ -8,7 +8,12 @@ Every stage is a module ``stages/<name>.py`` that defines ``SPEC`` (a :class:`St
 - inputs are artifact directories (read-only); outputs are directories the stage creates and fills;
 - params are typed with defaults (``pipeline.yaml`` may override them, ``--set`` may override both);
 - exit 0 on success, 3 with a one-line message for a user-facing error (:mod:`humanvdm_core.errors`),
-  2 for a bad command line, 1 for a bug (with traceback).
+  4 when the disk (or quota) is full (an ``OSError`` ENOSPC/EDQUOT, or an error carrying its text:
+  the scheduler turns it into "no space left on device writing STORE; free N MB and rerun"),
+  2 for a bad command line, 1 for a bug (with traceback);
+- started by the scheduler (``$HUMANVDM_PARENT_PID`` set), a stage process dies with the process
+  that started it: on Linux it asks the kernel for SIGKILL when that process dies
+  (``PR_SET_PDEATHSIG``), so ``kill -9`` of ``humanvdm run`` (or of a Ray worker) leaves no orphan.
 
 Module-level imports of a stage must stay light (no torch): the scheduler imports ``SPEC`` to
 validate the pipeline before anything runs. Heavy imports go inside ``run``.
@@ -25,7 +30,11 @@ count, rate and ETA. Without the variable a report does nothing. The format is i
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import logging
+import os
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -33,9 +42,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from humanvdm_core.errors import ConfigError, HumanVDMError
+from humanvdm_core.errors import ConfigError, HumanVDMError, is_disk_full
 
-EXIT_OK, EXIT_BUG, EXIT_USAGE, EXIT_USER_ERROR = 0, 1, 2, 3
+EXIT_OK, EXIT_BUG, EXIT_USAGE, EXIT_USER_ERROR, EXIT_NO_SPACE = 0, 1, 2, 3, 4
+PARENT_PID_ENV = "HUMANVDM_PARENT_PID"  # set by the executor: the pid of the process that started the stage
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """When ``$HUMANVDM_PARENT_PID`` is set (Linux only): have the kernel SIGKILL this process when
+    the thread that started it ends, and exit now if that process is already gone (it may have died
+    before the request was made). Elsewhere, or without the variable, nothing happens."""
+    parent = os.environ.get(PARENT_PID_ENV, "")
+    if not parent.isdigit() or not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            return
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != int(parent):
+        os._exit(EXIT_BUG)
 
 
 @dataclass(frozen=True)
@@ -130,6 +158,7 @@ class StageSpec:
 
     def main(self, run: Callable[[StageContext], None], argv: list[str] | None = None) -> int:
         """Parse the command line, run the stage, map errors to exit codes."""
+        die_with_parent()
         parser = argparse.ArgumentParser(prog=f"python -m stages.{self.name.replace('-', '_')}", description=self.summary)
         for k, desc in self.inputs.items():
             optional = k in self.optional
@@ -167,6 +196,12 @@ class StageSpec:
         except HumanVDMError as e:
             print(f"error: {self.name}: {e}", file=sys.stderr)
             return EXIT_USER_ERROR
+        except Exception as e:
+            if not is_disk_full(e):
+                raise
+            with contextlib.suppress(OSError):  # the log may sit on the full disk
+                print(f"error: {self.name}: no space left on device ({e})", file=sys.stderr)
+            return EXIT_NO_SPACE
 
 
 @dataclass

@@ -6,7 +6,7 @@ Layout under the store root (default ``artifacts/``)::
     manifests/ab/<id>.json     its file list and file hashes (for checks and ``verify``)
     runcache/ab/<key>.json     stage-run records: run key -> output artifact ids + provenance
     runs/<subject>/            per-run views: <stage>/<output> links into objects/, the lockfile, logs
-    tmp/                       staging area (a killed writer leaves garbage here, never in objects/)
+    tmp/                       staging: <label>-pid<PID>.<host>.<random>/ per writer (see below)
     quarantine/                corrupt objects moved aside by ``verify`` (nothing is deleted silently)
     locks/                     file locks
     hashes.db                  the stat cache (see :mod:`humanvdm_core.hashing`)
@@ -14,10 +14,24 @@ Layout under the store root (default ``artifacts/``)::
 Contracts:
 - An object directory appears under its final name only complete (staged in tmp/, then renamed), so
   a killed stage never leaves anything in objects/ that looks complete.
-- ``has(id)`` checks an object cheaply (stat cache); a file whose bytes changed no longer matches and
-  the object counts as absent, so a corrupt entry is never a cache hit. ``verify`` re-reads everything.
-- Processes sharing a store coordinate with file locks: one per stage-run key (the second process
-  waits, then finds the first one's result) and a store lock that ``gc`` takes exclusively.
+- ``has(id)`` (every cache lookup: each stage run's outputs, each run input) checks an object
+  without re-reading it: its file list must equal its manifest, and each file's hash comes from the
+  stat cache, which trusts a stored hash only while the file's inode, size, mtime and ctime are
+  unchanged AND its first and last 64 KiB (the whole file up to 128 KiB) hash as when it was
+  hashed; anything else re-reads the file. So a file changed through the file system (even with
+  its size and mtime put back) is never a cache hit, nor is damage in a file's first or last
+  64 KiB; damage beneath the file system to the middle of a larger file is found only by
+  ``verify``, which re-reads every byte and quarantines what fails. Details: :mod:`humanvdm_core.hashing`.
+- Processes on one machine sharing a store coordinate with file locks: one per stage-run key (the
+  second process waits, then finds the first one's result) and a store lock that ``gc`` takes
+  exclusively. Across machines (a store on NFS, the Ray executor) nothing relies on these locks:
+  one driver commits, and a commit is a rename, atomic on any POSIX file system.
+- Staging folders are named for their writer (``pid<PID>.<host>``): a run removes the ones of
+  dead processes of its own host when it starts (:meth:`clean_stale_staging`), so a killed run's
+  partial outputs go at the next run; ``gc`` removes every leftover.
+- A full disk (ENOSPC/EDQUOT) while committing raises :class:`~humanvdm_core.errors.DiskFullError`
+  (one line: where, and how much to free) and leaves nothing half-written: the staged files are
+  removed and no record is written.
 """
 
 from __future__ import annotations
@@ -26,7 +40,9 @@ import contextlib
 import fcntl
 import json
 import os
+import re
 import shutil
+import socket
 import tempfile
 import time
 import uuid
@@ -36,7 +52,7 @@ from pathlib import Path
 
 from filelock import FileLock
 
-from humanvdm_core.errors import HumanVDMError
+from humanvdm_core.errors import DiskFullError, HumanVDMError, is_disk_full
 from humanvdm_core.hashing import StatCache, hash_tree, list_files, tree_id
 from humanvdm_core.io import atomic_write_text
 
@@ -54,6 +70,30 @@ class VerifyReport:
 
 def _shard(name: str) -> str:
     return f"{name[:2]}/{name}"
+
+
+HOST = re.sub(r"[^A-Za-z0-9-]", "_", socket.gethostname()) or "host"
+_STAGING_OWNER = re.compile(r"-pid(\d+)\.([A-Za-z0-9_-]+)\.[^.]*$")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def tree_size(path: str | os.PathLike) -> int:
+    """Bytes in the regular files under ``path`` (0 when it is gone)."""
+    total = 0
+    for dirpath, _, filenames in os.walk(path):
+        for name in filenames:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(dirpath, name)).st_size
+    return total
 
 
 class Store:
@@ -98,15 +138,44 @@ class Store:
             return False
         return tree_id(files.items()) == artifact_id
 
-    def new_staging_dir(self, label: str = "stage") -> Path:
-        return Path(tempfile.mkdtemp(prefix=f"{label}-", dir=self.root / "tmp"))
+    def new_staging_dir(self, label: str = "stage", owner_pid: int | None = None) -> Path:
+        """A new empty folder ``tmp/<label>-pid<PID>.<host>.<random>``; PID (default: this process)
+        is the process whose death makes it garbage (see :meth:`clean_stale_staging`)."""
+        pid = os.getpid() if owner_pid is None else owner_pid
+        return Path(tempfile.mkdtemp(prefix=f"{label}-pid{pid}.{HOST}.", dir=self.root / "tmp"))
+
+    def clean_stale_staging(self) -> list[Path]:
+        """Remove staging folders whose owner process, on this host, is gone; returns them.
+
+        Folders of live processes, of other hosts (a shared store) and without an owner in their
+        name are kept (``gc`` removes those)."""
+        removed = []
+        for entry in sorted((self.root / "tmp").iterdir()):
+            m = _STAGING_OWNER.search(entry.name)
+            if m is None or m.group(2) != HOST or _pid_alive(int(m.group(1))):
+                continue
+            discard(entry)
+            removed.append(entry)
+        return removed
 
     def commit_dir(self, staged: str | os.PathLike) -> str:
         """Move a finished staging directory into the store; returns its artifact id.
 
-        If the same content is already stored, the staged copy is discarded.
+        If the same content is already stored, the staged copy is discarded. A full disk raises
+        :class:`DiskFullError` after removing the staged copy (nothing is half-committed: the
+        manifest may be written, the object is not).
         """
         staged = Path(staged)
+        try:
+            return self._commit_dir(staged)
+        except OSError as e:
+            if not is_disk_full(e):
+                raise
+            need = tree_size(staged)
+            discard(staged)
+            raise DiskFullError(self.root, need) from None
+
+    def _commit_dir(self, staged: Path) -> str:
         artifact_id, files = hash_tree(staged)
         if self.has(artifact_id):
             shutil.rmtree(staged, ignore_errors=True)
@@ -148,10 +217,16 @@ class Store:
         if self.has(artifact_id):
             return artifact_id
         staged = self.new_staging_dir("import")
-        for rel, p in names.items():
-            dest = staged / rel
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(p, dest)
+        try:
+            for rel, p in names.items():
+                dest = staged / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(p, dest)
+        except OSError as e:
+            discard(staged)
+            if is_disk_full(e):
+                raise DiskFullError(self.root, sum(os.path.getsize(p) for p in names.values())) from None
+            raise
         return self.commit_dir(staged)
 
     def _quarantine(self, artifact_id: str) -> str:
@@ -254,9 +329,21 @@ class Store:
             if record is None or not all(self.object_path(i).is_dir() for i in outputs.values()):
                 p.unlink(missing_ok=True)
         for leftover in (self.root / "tmp").iterdir():
-            _make_writable(leftover)
-            shutil.rmtree(leftover, ignore_errors=True) if leftover.is_dir() else leftover.unlink()
+            discard(leftover)
         return removed, freed
+
+
+def discard(path: Path) -> None:
+    """Remove a staging folder or file, read-only parts included; missing is fine."""
+    if path.is_dir() and not path.is_symlink():
+        for p in [path, *path.rglob("*")]:
+            with contextlib.suppress(OSError):
+                if not p.is_symlink():
+                    p.chmod(0o755 if p.is_dir() else 0o644)
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
 
 
 def _make_read_only(path: Path) -> None:

@@ -11,6 +11,9 @@ and a rerun that reuses what finished.
   settings, once for the module.
 - A missing / unreadable weight file, a corrupt store entry and a run killed mid-stage use a tiny
   procedural scan (``render-training-orbits -> upscale``), which takes a second or two per stage.
+- What messages call the user's files (their own paths, never the store's copies; an empty file;
+  a file name in another script) uses the toy pipeline of tests/toyproject.py, and an empty photo
+  the real one (it fails before any stage process starts).
 
 Unit-level tests of the same cases: tests/test_perception.py (loading, detection), test_store.py
 (corruption, verify), test_cli.py (toy-pipeline batch, kill and Ctrl-C), test_model_backends.py
@@ -35,6 +38,7 @@ from humanvdm_core.frames import frame_paths, read_cameras, read_frames
 from humanvdm_core.procedural import write_person
 from humanvdm_core.scheduler import read_lockfile
 from humanvdm_core.store import Store
+from tests.toyproject import ToyProject
 
 pytestmark = pytest.mark.slow
 
@@ -195,6 +199,7 @@ def test_unusable_photo_fails_with_one_line_naming_the_file_and_the_problem(batc
     assert failed[0].startswith(f"FAILED {name}/diffuse: diffuse: ")
     for part in FAILURES[photo]:
         assert part.format(path=photos[photo]) in failed[0], failed[0]
+    assert "objects/" not in failed[0] and "input." not in failed[0], failed[0]  # never the store's copy
     log = store / "runs" / name / "logs" / "diffuse.log"
     assert lines[lines.index(failed[0]) + 1] == f"  log: {log}"
     text = log.read_text()
@@ -320,8 +325,8 @@ def test_corrupt_store_entry_is_never_a_cache_hit(tmp_path, scan):
     assert stages["render-training-orbits"]["status"] == "ran" and stages["upscale"]["status"] == "cached"
     assert stages["render-training-orbits"]["outputs"]["orbit"] == orbit and frame.read_bytes() == good
 
-    # 2. silent damage (same size, mtime put back: no cheap check can see it): `humanvdm verify` finds it,
-    #    quarantines it (nothing deleted), and the next run recomputes it
+    # 2. silent damage (same size, mtime put back; the stat cache would see the new ctime at the next
+    #    run): `humanvdm verify` finds it, quarantines it (nothing deleted), and the next run recomputes it
     st = frame.stat()
     frame.chmod(0o644)
     data = bytearray(good)
@@ -384,15 +389,75 @@ def test_run_killed_mid_stage_leaves_nothing_complete_and_rerun_reuses_finished_
     rerun = humanvdm(store, *args)
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert "1 stage run(s) ran, 1 cached" in rerun.stdout
+    assert not partial[0].exists() and list((store / "tmp").iterdir()) == []  # the rerun removed the dead run's
     stages = read_lockfile(s, "person")["stages"]
     assert stages["render-training-orbits"]["status"] == "cached" and stages["upscale"]["status"] == "ran"
     out = store / "runs" / "person" / "upscale" / "frames"
     assert len(frame_paths(out)) == 21 and read_cameras(out).width == 768
     verify = humanvdm(store, "verify")
     assert verify.returncode == 0 and "0 corrupt" in verify.stdout
+    (store / "tmp" / "upscale-leftover").mkdir()  # staging garbage without an owner (an older store's): gc's
     with s.shared_use():  # as a running pipeline holds it: gc refuses, with a message, and removes nothing
         busy = humanvdm(store, "gc")
     assert busy.returncode == 2 and busy.stderr.startswith("error: the store ") and "in use" in busy.stderr
     assert "Traceback" not in busy.stderr and list((store / "tmp").iterdir())
-    gc = humanvdm(store, "gc")  # the killed run's staging garbage goes with gc
+    gc = humanvdm(store, "gc")
     assert gc.returncode == 0 and list((store / "tmp").iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- the user's file names
+
+def test_errors_name_the_users_file_never_the_stores_copy(tmp_path):
+    """A stage reads the store's copy (``objects/ab/<id>/input.txt``); what it says about it names the file
+    the user gave, also where a library quoted the full path."""
+    toy = ToyProject(tmp_path)
+    src = tmp_path / "my texts" / "holiday.txt"
+    src.parent.mkdir()
+    src.write_text("BADFILE")
+    res = humanvdm(toy.store.root, "run", str(src), "--kind", "text", "--no-progress", pipeline=toy.pipeline_path)
+    assert res.returncode == 1, res.stdout + res.stderr
+    (failed,) = [ln for ln in res.stdout.splitlines() if ln.startswith("FAILED ")]
+    assert failed == (f"FAILED holiday/shout: shout: cannot read {src}: the file is truncated or corrupt "
+                      f'(Failed to read "{src}")')
+    assert "objects/" not in res.stdout and "input.txt" not in res.stdout
+
+
+def test_an_empty_input_file_says_it_is_empty_and_the_batch_goes_on(tmp_path):
+    toy = ToyProject(tmp_path)
+    empty, good = tmp_path / "inputs" / "empty.txt", tmp_path / "inputs" / "good.txt"
+    empty.write_bytes(b"")
+    good.write_text("some text")
+    res = humanvdm(toy.store.root, "run", str(empty), str(good), "--kind", "text", "--no-progress",
+                   pipeline=toy.pipeline_path)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert "2 input(s): 3 stage run(s) ran, 0 cached, 1 failed, 2 skipped" in res.stdout
+    lines = res.stdout.splitlines()
+    (failed,) = [ln for ln in lines if ln.startswith("FAILED ")]
+    assert failed == f"FAILED empty/shout: {empty} is empty (0 bytes)"
+    assert read_lockfile(Store(toy.store.root), "good")["stages"]["report"]["status"] == "ran"
+    # an empty photo, on the real pipeline: the same, before any stage process starts
+    photo = tmp_path / "blank.jpg"
+    photo.write_bytes(b"")
+    res = humanvdm(tmp_path / "store", "run", str(photo), *PHOTO_ARGS)
+    assert res.returncode == 1 and f"FAILED blank/diffuse: {photo} is empty (0 bytes)" in res.stdout, res.stdout
+
+
+def test_a_file_name_in_any_script_keeps_a_readable_run_name(tmp_path):
+    import unicodedata
+
+    from humanvdm_core.inputs import discover
+
+    names = {"Jürgen Müller.txt": "Jürgen_Müller", "写真 1.txt": "写真_1", "Ελένη.txt": "Ελένη",
+             unicodedata.normalize("NFD", "José.txt"): "José", "a/b?.txt".replace("/", "_"): "a_b"}
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in names:
+        (folder / name).write_text("text")
+    got = {s.source.name: s.name for s in discover([folder / n for n in names], kind="text")}
+    assert got == names
+    toy = ToyProject(tmp_path / "toy")
+    res = humanvdm(toy.store.root, "run", str(folder / "写真 1.txt"), "--kind", "text", "--no-progress",
+                   pipeline=toy.pipeline_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert f"outputs of 写真_1: {toy.store.root / 'runs' / '写真_1'}" in res.stdout
+    assert read_lockfile(Store(toy.store.root), "写真_1")["stages"]["report"]["status"] == "ran"

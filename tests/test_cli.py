@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -154,3 +155,58 @@ def test_params_of_the_real_pipeline_show_choices():
     assert res.returncode == 0, res.stderr
     assert "splat-optimize.preset = 'auto'  (str)  choices: auto, tiny, cpu, full" in res.stdout
     assert "splat-optimize.ply_axes = 'y-down'" in res.stdout
+
+
+def test_kill_9_of_run_takes_its_stage_along_and_the_next_run_removes_its_staging(toy):
+    """``kill -9`` of ``humanvdm run`` alone (not its process group): the stage process dies with it
+    (PR_SET_PDEATHSIG) instead of running on as an orphan, and the next run removes the dead run's
+    staging folder (named for its owner's pid) before it starts."""
+    psutil = pytest.importorskip("psutil")
+    inp = write_input(toy, "a", "slow text")
+    p = cli(toy, "run", inp, "--kind", "text", "--set", "shout.sleep=30", "--no-progress", background=True)
+    _wait_for_staging(toy)
+    stages = [c for c in psutil.Process(p.pid).children(recursive=True) if f"{toy.pkg}.shout" in " ".join(c.cmdline())]
+    assert len(stages) == 1
+    staging = sorted((toy.store.root / "tmp").glob("shout-*"))
+    assert len(staging) == 1 and f"-pid{p.pid}." in staging[0].name
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    p.stdout.close()
+    _, alive = psutil.wait_procs(stages, timeout=5)
+    assert alive == [], "the stage process outlived the killed run"
+    assert staging[0].exists()  # the dead run's partial work, until ...
+    res = cli(toy, "run", inp, "--kind", "text")
+    assert res.returncode == 0 and "3 stage run(s) ran" in res.stdout, res.stdout + res.stderr
+    assert not staging[0].exists() and list((toy.store.root / "tmp").iterdir()) == []  # ... the next run
+
+
+def test_full_disk_gives_one_line_and_leaves_nothing_half_written(toy):
+    """The store on a real, tiny file system (a 2 MB tmpfs in a private mount namespace): a stage that
+    fills it fails with one line; its partial output is gone; nothing is recorded or linked."""
+    from tests.toyproject import in_tiny_filesystem
+
+    inp = write_input(toy, "a", "a line of text that will be repeated many times over\n")
+    mount = toy.root / "small"
+    store = mount / "artifacts"
+    cmd = (f"{sys.executable} -m humanvdm_core.cli run {inp} --kind text --pipeline {toy.pipeline_path} "
+           f"--store {store} --set shout.times=100000 --no-progress; echo rc=$?; "
+           f"echo tmp=$(ls -A {store}/tmp | wc -l) records=$(find {store}/runcache -name '*.json' | wc -l) "
+           f"objects=$(ls {store}/objects/*/ | grep -c .) links=$(ls {store}/runs/a | grep -vc logs)")
+    res = in_tiny_filesystem(mount, "2m", cmd)
+    if res is None:
+        pytest.skip("cannot mount a tmpfs in a private namespace here (unshare)")
+    out = res.stdout
+    failed = [ln for ln in out.splitlines() if ln.startswith("FAILED ")]
+    assert len(failed) == 1, out + res.stderr
+    assert re.fullmatch(rf"FAILED a/shout: no space left on device writing {re.escape(str(store))}; "
+                        r"free \d+ MB and rerun", failed[0]), failed[0]
+    assert "rc=1" in out and "Traceback" not in out + res.stderr
+    assert "tmp=0 records=0 objects=1 links=0" in out, out  # the input only; no staging, record or link
+
+
+def test_a_local_run_never_imports_ray(toy):
+    inp = write_input(toy, "a", "hello")
+    args = ["run", "--pipeline", str(toy.pipeline_path), "--store", str(toy.store.root), inp, "--kind", "text", "-q"]
+    code = f"import sys; from humanvdm_core import cli; rc = cli.main({args!r}); print('RESULT', rc, 'ray' in sys.modules)"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "RESULT 0 False" in res.stdout, res.stdout + res.stderr

@@ -273,3 +273,118 @@ def test_set_backend_chooses_a_stage_backend():
     with pytest.raises(ConfigError, match=r"stage diffuse: unknown backend 'sv3dd'; choose from \['body-prior'"):
         Scheduler(pipe, Store.__new__(Store), overrides={"diffuse": {"backend": "sv3dd"}})
     assert default.plan([photo]) and chosen.plan([photo])
+
+
+# ----------------------------------------------------------------------------- a full disk
+
+def _nothing_left_of(toy, subject_name: str) -> None:
+    """No staging folder, no run record and no lockfile entry from a failed stage run."""
+    assert list((toy.store.root / "tmp").iterdir()) == []
+    lock = read_lockfile(toy.store, subject_name)
+    assert "shout" not in (lock.get("stages") or {})
+
+
+def test_disk_full_in_a_stage_fails_that_run_with_one_line_and_leaves_nothing(toy):
+    """A stage's ENOSPC (exit 4) becomes one line naming the store and the room to make; the staged
+    partial output is removed, nothing is recorded, and the rest of the batch runs."""
+    ok, full = toy.subject("ok", "fine text"), toy.subject("full", "NOSPACE here")
+    s = toy.scheduler().run([ok, full])
+    by = {(r.subject.name, r.stage): r for r in s.runs}
+    assert by["ok", "report"].state == RAN
+    failed = by["full", "shout"]
+    assert failed.state == FAILED
+    # N: what the stage had written (300 kB) or the same stage's largest output in this run: 1 MB
+    assert failed.reason == f"no space left on device writing {toy.store.root}; free 1 MB and rerun"
+    assert "no space left on device" in failed.log.read_text() and "Traceback" not in failed.log.read_text()
+    assert by["full", "measure"].state == SKIPPED
+    _nothing_left_of(toy, "full")
+    assert len(list((toy.store.root / "runcache").glob("*/*.json"))) == 3  # ok's three stage runs only
+
+
+def test_disk_full_while_committing_fails_the_run_and_commits_nothing(toy, monkeypatch):
+    import errno
+
+    from humanvdm_core.store import Store
+
+    subj = toy.subject("a", "x" * 2_500_000)  # shout's output: 2.5 MB
+    before = set(toy.store.all_ids())
+
+    def disk_full(self, staged):
+        raise OSError(errno.ENOSPC, "No space left on device", str(staged))
+
+    monkeypatch.setattr(Store, "_commit_dir", disk_full)
+    s = toy.scheduler().run([subj])
+    shout = next(r for r in s.runs if r.stage == "shout")
+    assert shout.state == FAILED
+    assert shout.reason == f"no space left on device writing {toy.store.root}; free 3 MB and rerun"
+    assert set(toy.store.all_ids()) == before
+    assert not list((toy.store.root / "runcache").glob("*/*.json"))
+    _nothing_left_of(toy, "a")
+    monkeypatch.undo()  # room made: the rerun computes it
+    assert states(toy.scheduler().run([subj])) == {"shout": RAN, "measure": RAN, "report": RAN}
+
+
+# ----------------------------------------------------------------------------- resources (for Ray)
+
+RESOURCES = """
+    resources:
+      num_cpus: 2
+      memory: 512MB
+      when: {{times=3: {{num_gpus: 1, memory: 1GiB}}, backend=embedded: {{num_cpus: 0.5}}}}
+"""
+
+
+def test_resources_come_from_the_pipeline_its_when_and_set(tmp_path):
+    from humanvdm_core.pipeline import Resources
+    from tests.toyproject import PIPELINE
+
+    text = PIPELINE.replace("    inputs: {{src: $text}}\n    outputs: [out]\n",
+                            "    inputs: {{src: $text}}\n    outputs: [out]\n" + RESOURCES.lstrip("\n"))
+    toy = ToyProject(tmp_path, pipeline_text=text)
+    assert toy.scheduler().resources("measure") == Resources()  # the default: one CPU
+    assert toy.scheduler().resources("shout") == Resources(num_cpus=0.5, num_gpus=0, memory=512 * 10**6)
+    sched = toy.scheduler(overrides={"shout": {"times": 3}})
+    assert sched.resources("shout") == Resources(num_cpus=0.5, num_gpus=1, memory=2**30)
+    sched = toy.scheduler(overrides={"shout": {"resources.num_gpus": "2", "resources.memory": "4GB"}})
+    assert sched.resources("shout") == Resources(num_cpus=0.5, num_gpus=2, memory=4 * 10**9)
+    assert "resources.num_gpus" not in sched.params["shout"]  # never a param, never in the key
+    subj = toy.subject("a", "abc")
+    assert len({sch.status([subj])[0].key for sch in (toy.scheduler(), sched)}) == 1  # shout's key: the same
+    with pytest.raises(ConfigError, match="stage shout: resources.num_gpus must be a number >= 0"):
+        toy.scheduler(overrides={"shout": {"resources.num_gpus": "-1"}})
+    with pytest.raises(ConfigError, match="stage shout: unknown resource 'gpus'"):
+        toy.scheduler(overrides={"shout": {"resources.gpus": "1"}})
+
+
+@pytest.mark.parametrize("resources,message", [
+    ("{num_cpus: -1}", "stage shout: resources.num_cpus must be a number >= 0"),
+    ("{memory: lots}", "stage shout: resources.memory 'lots' is not a size"),
+    ("{cpus: 1}", "stage shout: unknown resource 'cpus'"),
+    ("{when: {backend=gpu: {num_gpus: 1}}}", "stage shout: unknown backend 'gpu'"),
+    ("{when: {timez=3: {num_gpus: 1}}}", "stage shout: resources.when: unknown param 'timez'"),
+    ("{when: {times: {num_gpus: 1}}}", "stage shout: resources.when: expected 'backend=NAME' or 'PARAM=VALUE'"),
+    ("[1, 2]", "stage shout: resources must be a mapping"),
+])
+def test_invalid_resources_fail_naming_the_stage(tmp_path, resources, message):
+    from humanvdm_core.pipeline import load_pipeline
+    from tests.toyproject import PIPELINE
+
+    toy = ToyProject(tmp_path)
+    toy.pipeline_path.write_text(PIPELINE.format(pkg=toy.pkg).replace(
+        "    inputs: {src: $text}\n", f"    inputs: {{src: $text}}\n    resources: {resources}\n"))
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[")):
+        load_pipeline(toy.pipeline_path)
+
+
+def test_real_pipeline_asks_a_gpu_only_for_gpu_settings():
+    from humanvdm_core.cli import REPO_ROOT
+    from humanvdm_core.pipeline import load_pipeline
+    from humanvdm_core.store import Store
+
+    pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
+    default = Scheduler(pipe, Store.__new__(Store))
+    assert all(default.resources(s).num_gpus == 0 for s in pipe.stages)
+    gpu = Scheduler(pipe, Store.__new__(Store), overrides={"diffuse": {"backend": "sv3d_p"},
+                                                          "splat-optimize": {"preset": "full"}})
+    assert gpu.resources("diffuse").num_gpus == 1 and gpu.resources("splat-optimize").num_gpus == 1
+    assert gpu.resources("upscale").num_gpus == 0

@@ -86,6 +86,65 @@ def test_modified_object_is_never_a_cache_hit(tmp_path):
     assert (toy.store.object_path(runs2["measure"].outputs["out"]) / "n.txt").read_text() == "1"
 
 
+def _damage_keeping_size_and_mtime(f, offset: int) -> None:
+    """Flip one byte at ``offset``, then put the mtime back: size, inode and mtime are unchanged."""
+    st = f.stat()
+    f.chmod(0o644)
+    data = bytearray(f.read_bytes())
+    data[offset] ^= 0xFF
+    f.write_bytes(bytes(data))
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    f.chmod(0o444)
+
+
+def test_damage_with_size_and_mtime_restored_is_never_a_cache_hit(tmp_path):
+    """The stat cache keys on the ctime too (a write, a chmod or a restored mtime all change it), so a
+    file damaged through the file system is re-hashed at the next lookup and its stage recomputed."""
+    toy = ToyProject(tmp_path)
+    subj = toy.subject("a", "hello there")
+    runs = _toy_run(toy, subj)
+    shout_id = runs["shout"].outputs["out"]
+    f = toy.store.object_path(shout_id) / "text.txt"
+    _damage_keeping_size_and_mtime(f, 4)
+    assert not Store(toy.store.root).has(shout_id)
+    runs2 = _toy_run(toy, subj)
+    assert runs2["shout"].state == RAN and runs2["measure"].state == CACHED  # same bytes back: early cutoff
+    assert f.read_text() == "hello there"
+
+
+def test_cache_hit_rechecks_the_head_and_tail_bytes_of_every_file(tmp_path):
+    """Even when every stat field matches (damage beneath the file system: simulated by giving the
+    stat-cache row the damaged file's stat), a cache hit re-reads each file's first and last 64 KiB
+    (small files whole); the middle of a large file is only checked by ``verify``."""
+    from humanvdm_core.hashing import EDGE_BYTES
+
+    store = Store(tmp_path / "store")
+    staged = store.new_staging_dir()
+    size = 4 * EDGE_BYTES
+    make_dir(staged, {"big.bin": os.urandom(size), "small.bin": os.urandom(100)})
+    artifact_id = store.commit_dir(staged)
+    obj = store.object_path(artifact_id)
+
+    def stat_unchanged(f) -> None:  # as if the damage had left no trace in the inode
+        st = f.stat()
+        store.stat_cache._conn().execute("UPDATE files SET mtime_ns=?, ctime_ns=? WHERE path=?",
+                                         (st.st_mtime_ns, st.st_ctime_ns, str(f)))
+
+    for rel, offset in (("big.bin", 10), ("big.bin", size - 10), ("small.bin", 50)):
+        f = obj / rel
+        _damage_keeping_size_and_mtime(f, offset)
+        stat_unchanged(f)
+        assert not Store(store.root).has(artifact_id), (rel, offset)
+        _damage_keeping_size_and_mtime(f, offset)  # repaired: the same bytes as committed
+        store.stat_cache.file_hash(f, trust_cache=False)
+        assert Store(store.root).has(artifact_id)
+    f = obj / "big.bin"
+    _damage_keeping_size_and_mtime(f, size // 2)  # the middle: what the cheap check does not read
+    stat_unchanged(f)
+    assert Store(store.root).has(artifact_id)
+    assert Store(store.root).verify().corrupt == [artifact_id]
+
+
 def test_verify_finds_silent_corruption_and_the_run_recomputes_it(tmp_path):
     toy = ToyProject(tmp_path)
     subj = toy.subject("a", "hello there")
@@ -125,6 +184,27 @@ def test_gc_removes_only_unreferenced_artifacts(tmp_path):
     assert set(removed) == {old["measure"].outputs["out"], old["report"].outputs["out"]}
     again = _toy_run(toy, subj, overrides={"measure": {"bucket": 5}})
     assert {r.state for r in again.values()} == {CACHED}
+
+
+def test_a_run_removes_the_staging_folders_of_dead_processes_of_its_host_only(tmp_path):
+    import subprocess
+    import sys
+
+    from humanvdm_core.store import HOST
+
+    store = Store(tmp_path / "s")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)  # a process that has ended
+    stale = store.new_staging_dir("upscale", owner_pid=dead_pid)
+    make_dir(stale, {"frames/0000.exr": b"partial"})
+    (stale / "frames" / "0000.exr").chmod(0o444)
+    mine = store.new_staging_dir("upscale")  # this live process's
+    elsewhere = store.root / "tmp" / f"upscale-pid{dead_pid}.{HOST}x.abc"  # another host's: its pids mean nothing here
+    unnamed = store.root / "tmp" / "upscale-abc"  # an older store's: gc's business
+    for d in (elsewhere, unnamed):
+        d.mkdir()
+    assert store.clean_stale_staging() == [stale]
+    assert not stale.exists() and mine.exists() and elsewhere.exists() and unnamed.exists()
 
 
 def test_gc_refuses_while_a_run_holds_the_store(tmp_path):
@@ -167,3 +247,22 @@ def test_links_are_refused_in_artifacts(tmp_path):
     (d / "linked_dir").symlink_to(tmp_path)
     with pytest.raises(ValueError, match="symbolic links"):
         hash_tree(d)
+
+
+def test_exr_write_on_a_full_disk_is_enospc_and_leaves_no_file(tmp_path):
+    """OpenImageIO says only "File output failed"; write_exr reports ENOSPC (what the stage turns into
+    exit 4 and the scheduler into its one-line message) and removes its temporary file."""
+    import sys
+
+    from tests.toyproject import in_tiny_filesystem
+
+    mount = tmp_path / "small"
+    code = ("import errno, os, numpy as np; from humanvdm_core.io import write_exr\n"
+            "try:\n"
+            f"    write_exr('{mount}/a.exr', np.random.default_rng(0).random((512, 512, 4)))\n"
+            "except OSError as e:\n"
+            "    print('errno', e.errno, errno.errorcode.get(e.errno), 'files', os.listdir('" + str(mount) + "'))\n")
+    res = in_tiny_filesystem(mount, "256k", f"{sys.executable} -c \"{code}\"")
+    if res is None:
+        pytest.skip("cannot mount a tmpfs in a private namespace here (unshare)")
+    assert "errno 28 ENOSPC files []" in res.stdout, res.stdout + res.stderr

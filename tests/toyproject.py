@@ -4,7 +4,9 @@ Each test gets its own folder with a ``pipeline.yaml`` and a uniquely named stag
 module caches of earlier tests never interfere). The stages:
 
 - ``shout``   (input ``$text``):  writes the text ``times`` times (upper-cased when ``upper``);
-              fails with a user error when the text contains FAIL; sleeps ``sleep`` seconds
+              fails with a user error when the text contains FAIL, with one naming the input
+              file's full path when it contains BADFILE, and meets a full disk half-way through
+              writing (ENOSPC) when it contains NOSPACE; sleeps ``sleep`` seconds
               (in ``steps`` steps, reporting progress after each, when ``steps`` > 0).
 - ``measure`` (``shout.out``):    writes ``len(text) // bucket`` (coarse: early cutoff material).
 - ``report``  (``measure.out``):  writes "size=<n>".
@@ -55,6 +57,13 @@ def run(ctx):
     text = read(ctx, "src")
     if "FAIL" in text:
         raise InputError("this text cannot be shouted")
+    if "BADFILE" in text:
+        src = next(iter(sorted(ctx.inputs["src"].iterdir())))
+        raise InputError(f'cannot read {src}: the file is truncated or corrupt (Failed to read "{src}")')
+    if "NOSPACE" in text:
+        out_dir = ctx.outputs["out"]
+        (out_dir / "part.bin").write_bytes(b"x" * 300_000)
+        raise OSError(28, "No space left on device", str(out_dir / "more.bin"))
     if "CRASH" in text:
         raise RuntimeError("a bug")
     steps = ctx.params["steps"]
@@ -154,3 +163,24 @@ class ToyProject:
         seen = getattr(self, "_seen", 0)
         self._seen = len(rows)
         return [r[0] for r in rows[seen:]]
+
+
+def in_tiny_filesystem(mount: Path, size: str, script: str, timeout: float = 120):
+    """Run the shell ``script`` with a fresh tmpfs of ``size`` (e.g. ``2m``) mounted at ``mount``, in a
+    private mount namespace (``unshare``: root, or unprivileged user namespaces); the file system is
+    gone when it ends, so ``script`` checks what it needs. Returns the CompletedProcess, or None when
+    this machine cannot make such a namespace (the caller skips)."""
+    import shutil
+    import subprocess
+
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        return None
+    mount.mkdir(parents=True, exist_ok=True)
+    probe = subprocess.run([unshare, "--mount", "--map-root-user", "sh", "-c",
+                            f"mount -t tmpfs -o size=64k none '{mount}'"], capture_output=True, timeout=30)
+    if probe.returncode != 0:
+        return None
+    return subprocess.run([unshare, "--mount", "--map-root-user", "sh", "-c",
+                           f"mount -t tmpfs -o size={size} none '{mount}' && {script}"],
+                          capture_output=True, text=True, timeout=timeout)
