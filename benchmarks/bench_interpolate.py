@@ -100,8 +100,8 @@ def summarise(rows: list[tuple[float, float, float]], times: list[float] | None 
 # ----------------------------------------------------------------------------- rendering
 
 def load_subject(name: str):
-    from humanvdm_core.procedural import make_person
     from humanvdm_core.scans import load_scan, normalize_scan
+    from testdata.procedural import make_person
 
     if name == "scan":
         return normalize_scan(load_scan(SCAN))

@@ -54,9 +54,9 @@ from pathlib import Path
 import numpy as np
 
 from humanvdm_core.cameras import Cameras, upsample_cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, open_frame_set
 from humanvdm_core.io import read_exr, write_exr
+from humanvdm_core.workflow.errors import InputError
 
 METHODS = ("flow", "crossfade")
 SCHEDULES = ("direct", "recursive")
@@ -359,7 +359,7 @@ def interpolate_frame_set(src: str | Path, dst: str | Path, opts: InterpolateOpt
         write_exr(dst / FRAMES_DIR / frame_name(index), frame,
                   attrs={**base, "frame_index": index, "keyframe": int(key), "time": float(t)})
 
-    from humanvdm_core.progress import report
+    from humanvdm_core.workflow.progress import report
 
     prev = read_exr(paths[0])
     put(0, prev, True, 0.0)

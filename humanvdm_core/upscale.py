@@ -36,9 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from humanvdm_core.cameras import Cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, open_frame_set
 from humanvdm_core.io import read_exr, write_exr
+from humanvdm_core.workflow.errors import InputError
 
 DEFAULT_TARGET_SIZE = 1080
 # Chosen by measurement (benchmarks/bench_interpolate.py, "upscale_576_to_1080": 576 renders upscaled
@@ -206,7 +206,7 @@ def upscale_frame_set(src: str | Path, dst: str | Path, opts: UpscaleOptions, ba
             log.info("frames already %dx%d: pass-through (copied %d files unchanged)", size, size, n)
         return {"passthrough": True, "frames": len(paths), "source_size": size, "target_size": size}
 
-    from humanvdm_core.progress import report
+    from humanvdm_core.workflow.progress import report
 
     fn = BACKENDS[backend]
     for i, p in enumerate(paths):

@@ -16,7 +16,7 @@ get it, before any frame is read.
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 SPEC = StageSpec(
     name="interpolate",
@@ -50,8 +50,8 @@ SPEC = StageSpec(
 
 
 def run(ctx: StageContext) -> None:
-    from humanvdm_core.errors import ConfigError
     from humanvdm_core.interpolate import InterpolateOptions, interpolate_frame_set
+    from humanvdm_core.workflow.errors import ConfigError
 
     p = ctx.params
     if not 0 <= p["passes"] <= 6:

@@ -12,7 +12,7 @@ weight file stops the stage (exit 3) naming the file and where to get it.
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 WEIGHTS = "~/.cache/humanvdm/weights"
 
@@ -41,8 +41,8 @@ SPEC = StageSpec(
 
 
 def run(ctx: StageContext) -> None:
-    from humanvdm_core.errors import ConfigError
     from humanvdm_core.upscale import UpscaleOptions, upscale_frame_set
+    from humanvdm_core.workflow.errors import ConfigError
 
     p = ctx.params
     if p["target_size"] < 1:

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from humanvdm_core.cameras import orbit_azimuths, orbit_cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import frame_paths, read_cameras, read_frames, write_frames
 from humanvdm_core.interpolate import (
     InterpolateOptions,
@@ -20,6 +19,7 @@ from humanvdm_core.interpolate import (
     time_flows,
 )
 from humanvdm_core.io import read_exr
+from humanvdm_core.workflow.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 BACKGROUND = np.array([0.45, 0.5, 0.55], np.float32)

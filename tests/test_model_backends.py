@@ -177,9 +177,9 @@ def test_upscale_stage_cli_realesrgan_and_missing_weights(tmp_path):
 
 
 def test_weight_file_hash_joins_the_stage_key_only_for_its_backends(tmp_path):
-    from humanvdm_core.pipeline import load_pipeline
-    from humanvdm_core.scheduler import Scheduler
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.pipeline import load_pipeline
+    from humanvdm_core.workflow.scheduler import Scheduler
+    from humanvdm_core.workflow.store import Store
 
     weights = save_tiny_realesrgan(tmp_path / "w.pth", seed=0)
     pipeline = load_pipeline(REPO / "pipeline.yaml")

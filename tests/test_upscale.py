@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from humanvdm_core.cameras import orbit_cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import frame_paths, read_cameras, read_frames, write_frames
 from humanvdm_core.io import read_exr, write_exr
 from humanvdm_core.upscale import UpscaleOptions, resample_color, upscale_embedded, upscale_frame_set
+from humanvdm_core.workflow.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 
