@@ -12,7 +12,7 @@ import pytest
 
 from humanvdm_core.cameras import orbit_azimuths, orbit_cameras
 from humanvdm_core.frames import frame_paths, read_cameras, read_frames, write_frames
-from humanvdm_core.interpolate import (
+from humanvdm_core.interpolate.core import (
     InterpolateOptions,
     interpolate_frame_set,
     interpolate_interval,
@@ -186,7 +186,7 @@ def test_stage_command_line(tmp_path):
 
 
 def test_stage_defaults_match_the_library():
-    from humanvdm_core import interpolate
+    from humanvdm_core.interpolate import core as interpolate
     from stages.interpolate import SPEC
 
     lib = interpolate.InterpolateOptions()

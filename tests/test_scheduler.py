@@ -219,7 +219,7 @@ def test_code_fingerprint_follows_project_imports_only():
     from humanvdm_core.workflow.pipeline import _project_sources
 
     sources = _project_sources("stages.upscale", ("humanvdm_core", "stages"))
-    assert {"stages.upscale", "humanvdm_core.upscale", "humanvdm_core.io", "humanvdm_core.workflow.stage"} <= set(sources)
+    assert {"stages.upscale", "humanvdm_core.upscale.core", "humanvdm_core.io", "humanvdm_core.workflow.stage"} <= set(sources)
     assert "humanvdm_core.render" not in sources and "humanvdm_core.body.anny_model" not in sources
     assert not any(name.startswith(("numpy", "cv2", "torch")) for name in sources)
 
