@@ -3,7 +3,7 @@
 A synthetic subject's 81-view orbit (``bench_splat.prepare_subject``, 512² renders, its true body) is
 trained with the ``cpu`` preset's model size (body template, UV 128, 192² views, 2 views a step) for
 ``--iterations`` steps in a fresh process started the way the scheduler starts a stage: ``after``
-with this tree's code and the scheduler's thread environment (:func:`humanvdm_core.threads.thread_env`:
+with this tree's code and the scheduler's thread environment (:func:`humanvdm_core.workflow.threads.thread_env`:
 the affinity's cores, passive OpenMP waiting); ``before`` (with ``--before-repo``, a checkout of the code
 before that change) with that code and the environment the scheduler used to give (``OMP_NUM_THREADS``
 = all cores, OpenMP's default spinning). Each is run alone and next to a pure-Python busy loop (one
@@ -67,7 +67,7 @@ def run_child(repo: Path, root: Path, iterations: int, env: dict[str, str], busy
 
 def main() -> None:
     from benchmarks.bench_splat import prepare_subject
-    from humanvdm_core.threads import THREAD_VARS, available_cores, stage_threads, thread_env
+    from humanvdm_core.workflow.threads import THREAD_VARS, available_cores, stage_threads, thread_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before-repo", type=Path, default=None, help="a checkout of the code before the change")

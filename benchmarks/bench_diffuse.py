@@ -5,7 +5,7 @@ Inputs: every photo in ../shared/fixtures/photos (``*_mask`` files are ground tr
 the stress cases in ``--cases`` (made once by ``--make-cases``, so a run of older code reads the very
 same photos): the RenderPeople scans rendered from the front, from behind and turned by 35 deg;
 synthetic subjects with a skirt and long hair, a gown, a seated pose and hands on the hips
-(:data:`humanvdm_core.synthetic.GARMENT_EXAMPLES`). At ``--size`` (576, the SV3D resolution) with
+(:data:`testdata.synthetic.GARMENT_EXAMPLES`). At ``--size`` (576, the SV3D resolution) with
 ``--iterations`` fit steps (150, the stage's default), one thread, per input:
 
 - ``ok`` / ``error``: whether it ran (a user-facing error is recorded, not raised);
@@ -52,7 +52,7 @@ def make_cases(out: Path) -> list[Path]:
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.synthetic import GARMENT_EXAMPLES, SubjectSpec, make_subject
+    from testdata.synthetic import GARMENT_EXAMPLES, SubjectSpec, make_subject
 
     out.mkdir(parents=True, exist_ok=True)
     meshes = {}
@@ -103,8 +103,8 @@ def main() -> None:
     import torch
 
     from humanvdm_core.body_prior import build_body_proxy
-    from humanvdm_core.errors import HumanVDMError
     from humanvdm_core.io import write_png
+    from humanvdm_core.workflow.errors import HumanVDMError
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--size", type=int, default=576)

@@ -1,6 +1,6 @@
 """Benchmark of the body fit (``humanvdm_core.body.fit``, stage ``fit-smpl``).
 
-Synthetic subjects (``humanvdm_core.synthetic.random_specs``, known true parameters), each rendered
+Synthetic subjects (``testdata.synthetic.random_specs``, known true parameters), each rendered
 by the ``render-training-orbits`` stage (21 frames, 576²); MediaPipe detections on every frame are
 computed once per subject, then:
 
@@ -63,7 +63,7 @@ def bench_subject(spec, work: Path, iterations: int, topologies: tuple[str, ...]
     from humanvdm_core.body.fit import FitOptions, fit_body, load_body_model, observe_frames, silhouette_iou
     from humanvdm_core.frames import read_cameras, read_frames
     from humanvdm_core.io import read_npz
-    from humanvdm_core.synthetic import make_subject
+    from testdata.synthetic import make_subject
 
     make_subject(spec, work / "subject")
     subprocess.run([sys.executable, "-m", "stages.render_training_orbits", "--scan", str(work / "subject"),
@@ -153,7 +153,7 @@ def main() -> None:
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    from humanvdm_core.synthetic import random_specs
+    from testdata.synthetic import random_specs
 
     result: dict = {"iterations": args.iterations, "subjects": [], "photos": {}, "failures": []}
     with tempfile.TemporaryDirectory() as tmp:

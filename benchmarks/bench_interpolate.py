@@ -47,8 +47,8 @@ sys.path.insert(0, str(REPO))
 from benchmarks.common import machine  # noqa: E402
 from humanvdm_core.cameras import orbit_cameras, upsample_cameras  # noqa: E402
 from humanvdm_core.frames import read_frames, write_frames  # noqa: E402
-from humanvdm_core.interpolate import InterpolateOptions, interpolate_frame_set, interpolate_interval  # noqa: E402
-from humanvdm_core.upscale import UpscaleOptions, upscale_embedded, upscale_frame_set  # noqa: E402
+from humanvdm_core.interpolate.core import InterpolateOptions, interpolate_frame_set, interpolate_interval  # noqa: E402
+from humanvdm_core.upscale.core import UpscaleOptions, upscale_embedded, upscale_frame_set  # noqa: E402
 
 SCAN = REPO.parent / "shared" / "fixtures" / "scans" / "renderpeople_rp_mei_posed_001"
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -100,8 +100,8 @@ def summarise(rows: list[tuple[float, float, float]], times: list[float] | None 
 # ----------------------------------------------------------------------------- rendering
 
 def load_subject(name: str):
-    from humanvdm_core.procedural import make_person
     from humanvdm_core.scans import load_scan, normalize_scan
+    from testdata.procedural import make_person
 
     if name == "scan":
         return normalize_scan(load_scan(SCAN))

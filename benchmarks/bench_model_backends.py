@@ -76,10 +76,10 @@ def save_models(folder: Path) -> tuple[dict[str, Path], dict[str, float]]:
     """Random-weight models saved in their official layouts; (paths, millions of parameters)."""
     import torch
 
-    from humanvdm_core.models import pervfi, raft
-    from humanvdm_core.models.codeformer import CodeFormer
-    from humanvdm_core.models.rife import IFNet
-    from humanvdm_core.models.rrdbnet import RRDBNet
+    from humanvdm_core.interpolate import pervfi, raft
+    from humanvdm_core.interpolate.rife import IFNet
+    from humanvdm_core.upscale.codeformer import CodeFormer
+    from humanvdm_core.upscale.rrdbnet import RRDBNet
 
     torch.manual_seed(0)
     models = {
@@ -119,11 +119,12 @@ def main() -> None:
 
     import torch
 
-    from humanvdm_core.interpolate import BACKENDS as INTERP
-    from humanvdm_core.interpolate import InterpolateOptions
-    from humanvdm_core.models import codeformer, faces, pervfi, rife, rrdbnet
-    from humanvdm_core.upscale import BACKENDS as UP
-    from humanvdm_core.upscale import UpscaleOptions
+    from humanvdm_core.interpolate import pervfi, rife
+    from humanvdm_core.interpolate.core import BACKENDS as INTERP
+    from humanvdm_core.interpolate.core import InterpolateOptions
+    from humanvdm_core.upscale import codeformer, faces, rrdbnet
+    from humanvdm_core.upscale.core import BACKENDS as UP
+    from humanvdm_core.upscale.core import UpscaleOptions
 
     torch.set_num_threads(args.threads)
     frame0, frame1 = test_frame(0), np.roll(test_frame(0), 6, axis=1)

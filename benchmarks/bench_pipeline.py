@@ -1,6 +1,6 @@
 """The whole pipeline from one photo, scored against the truth (issue 5's end-to-end benchmark).
 
-Per synthetic Anny subject (``humanvdm_core.synthetic``, known geometry and texture):
+Per synthetic Anny subject (``testdata.synthetic``, known geometry and texture):
 
 1. the subject is rendered at azimuth 0, elevation 10 deg (the orbit's input view) at
    ``--photo-size``; that RGBA render is the *photo* (the only thing the pipeline sees);
@@ -87,9 +87,9 @@ def run_subject(index: int, spec, work: Path, args) -> dict:
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.scheduler import read_lockfile
-    from humanvdm_core.store import Store
-    from humanvdm_core.synthetic import make_subject
+    from humanvdm_core.workflow.scheduler import read_lockfile
+    from humanvdm_core.workflow.store import Store
+    from testdata.synthetic import make_subject
 
     name = f"subject{index}"
     mesh = normalize_scan(load_scan(make_subject(spec, work / name)))
@@ -149,7 +149,7 @@ def save_summary(results: list[dict], args) -> tuple[dict, Path]:
 def main() -> None:
     import torch
 
-    from humanvdm_core.synthetic import random_specs
+    from testdata.synthetic import random_specs
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--subjects", type=int, default=3)

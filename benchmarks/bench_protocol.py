@@ -160,8 +160,8 @@ def run_scan(folder: Path, work: Path, args) -> dict:
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.scheduler import read_lockfile
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.scheduler import read_lockfile
+    from humanvdm_core.workflow.store import Store
 
     name = folder.name
     yaw = YAW_DEG.get(name, 0.0)

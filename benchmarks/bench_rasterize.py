@@ -6,7 +6,7 @@ sqrt(area / N), like splat-optimize's UV-texel Gaussians; ``aniso``: scales 5-10
 rotations. One camera on a 3 m orbit at 10 deg elevation with the SV3D vertical FOV of 33.8 deg.
 
 For each (N, image size) in ``--configs``, thread count in ``--threads`` and backend in ``--backends``, in
-its own process with a stage's thread environment (:func:`humanvdm_core.threads.thread_env`:
+its own process with a stage's thread environment (:func:`humanvdm_core.workflow.threads.thread_env`:
 OMP/MKL/NUMBA_NUM_THREADS, ``OMP_WAIT_POLICY=PASSIVE``), after one warm-up call, over ``--repeats``:
 
 - ``forward_s``: ``rasterize_gaussians(..., backend=...)`` under ``torch.no_grad()`` (rendering);
@@ -168,7 +168,7 @@ def first_numba_call() -> dict:
 
 
 def _child(args: list[str], threads: int, **env: str) -> dict:
-    from humanvdm_core.threads import thread_env
+    from humanvdm_core.workflow.threads import thread_env
 
     out = subprocess.run([sys.executable, __file__, *args], env=thread_env(threads, dict(os.environ, **env),
                                                                              override=True),

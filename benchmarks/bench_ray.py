@@ -29,10 +29,10 @@ import time
 from pathlib import Path
 
 from benchmarks.common import save_result
-from humanvdm_core.cli import RAY_JOBS
-from humanvdm_core.pipeline import load_pipeline
-from humanvdm_core.scheduler import CACHED, RAN, Scheduler, read_lockfile
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.cli import RAY_JOBS
+from humanvdm_core.workflow.pipeline import load_pipeline
+from humanvdm_core.workflow.scheduler import CACHED, RAN, Scheduler, read_lockfile
+from humanvdm_core.workflow.store import Store
 from tests.toyproject import ToyProject
 
 SLOTS = 2
@@ -65,7 +65,7 @@ def bench(n_inputs: int, repeats: int) -> dict:
     beside the same idle Ray processes, and machine load drifting during the benchmark hits both)."""
     import ray
 
-    from humanvdm_core.executors import RayExecutor
+    from humanvdm_core.workflow.executors import RayExecutor
 
     with tempfile.TemporaryDirectory() as tmp:
         toy = ToyProject(Path(tmp))

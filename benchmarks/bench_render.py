@@ -42,8 +42,8 @@ def _meshes() -> list[tuple[str, object, float]]:
     """(name, normalised TexturedMesh, load seconds) for every benchmark mesh available here."""
     import trimesh
 
-    from humanvdm_core.procedural import make_person
     from humanvdm_core.scans import TexturedMesh, load_scan, normalize_scan
+    from testdata.procedural import make_person
 
     out = []
     if RENDERPEOPLE.is_dir():

@@ -22,9 +22,9 @@ import numpy as np
 from benchmarks.common import save_result
 from humanvdm_core.cameras import orbit_cameras
 from humanvdm_core.frames import write_frames
-from humanvdm_core.pipeline import load_pipeline
-from humanvdm_core.scheduler import CACHED, Scheduler
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.pipeline import load_pipeline
+from humanvdm_core.workflow.scheduler import CACHED, Scheduler
+from humanvdm_core.workflow.store import Store
 from tests.toyproject import STAGES, ToyProject
 
 

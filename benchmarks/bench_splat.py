@@ -69,7 +69,7 @@ def prepare_subject(name: str, work: Path, render_size: int, eval_size: int, uv_
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalization_transform
     from humanvdm_core.splat.human import write_oracle_body
-    from humanvdm_core.synthetic import GARMENT_EXAMPLES, SubjectSpec, make_subject
+    from testdata.synthetic import GARMENT_EXAMPLES, SubjectSpec, make_subject
 
     root = work / name
     (root / "body").mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ For each protocol scan already run by ``bench_protocol`` (``--work``, default it
 ``interpolate`` frames and ``fit-smpl`` body, ``cpu`` preset, no turntable) twice, one after the other:
 with the code of ``--before-repo`` (a checkout from before the change) and with this tree's code (also
 given ``diffuse``'s orbit, so it finds the clothed proxy), each with the thread environment its
-scheduler gave (before: ``OMP_NUM_THREADS`` = all cores; after: :func:`humanvdm_core.threads.thread_env`).
+scheduler gave (before: ``OMP_NUM_THREADS`` = all cores; after: :func:`humanvdm_core.workflow.threads.thread_env`).
 Wall times are of the whole stage process (loading, training, writing).
 
 ``benchmarks/results/splat_speed.json`` then gathers, as the issue asks: ``before_s`` / ``after_s`` (medians
@@ -57,7 +57,7 @@ def load(name: str) -> dict:
 
 
 def main() -> None:
-    from humanvdm_core.threads import THREAD_VARS, stage_threads, thread_env
+    from humanvdm_core.workflow.threads import THREAD_VARS, stage_threads, thread_env
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before-repo", type=Path, required=True)

@@ -10,7 +10,7 @@ key is already in the store is reused, not recomputed. What a run did is read fr
 - the ``warning <subject>/<stage>: ...`` and ``FAILED <subject>/<stage>: ...`` lines.
 
 Times come from the run's lockfile (``runs/<subject>/humanvdm.lock``, via
-:func:`humanvdm_core.scheduler.read_lockfile`): each stage's ``wall_s`` is the time the stage run took
+:func:`humanvdm_core.workflow.scheduler.read_lockfile`): each stage's ``wall_s`` is the time the stage run took
 when it was computed, also when this call reused it, so a fully cached rerun reports the same time.
 """
 
@@ -133,8 +133,8 @@ def run_pipeline(photo: Path, store: Path, sets: list[str], jobs: int = 1, until
 
 def stage_times(store: Path, subject: str) -> dict[str, float]:
     """Per stage, the wall time its (possibly reused) stage run took when computed, from the lockfile."""
-    from humanvdm_core.scheduler import read_lockfile
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.scheduler import read_lockfile
+    from humanvdm_core.workflow.store import Store
 
     lock = read_lockfile(Store(store), subject)
     return {k: float(v["wall_s"]) for k, v in (lock.get("stages") or {}).items() if v.get("wall_s") is not None}

@@ -1,7 +1,7 @@
 """The stability suite of ``benchmarks.experiments``: where one photo -> 3D person breaks.
 
 Each :class:`Case` is one failure category with a photo that carries truth: a fixture scan
-(RenderPeople Mei) or a synthetic Anny subject (:mod:`humanvdm_core.synthetic`, posed and dressed
+(RenderPeople Mei) or a synthetic Anny subject (:mod:`testdata.synthetic`, posed and dressed
 for the case) is turned so that its view from azimuth 0 is the photo, rendered at elevation 10 deg
 over white and then edited in 2D where the category asks for it (cut at the knees, put in a very
 wide frame, a second person beside it, a cluttered background). The *truth* is the same mesh: an
@@ -44,7 +44,7 @@ CELL = 192
 
 def synthetic_specs() -> dict:
     """The synthetic subjects the cases use, by name (built once per work folder)."""
-    from humanvdm_core.synthetic import GARMENT_EXAMPLES, HAIR_COLORS, SubjectSpec
+    from testdata.synthetic import GARMENT_EXAMPLES, HAIR_COLORS, SubjectSpec
 
     return {
         "standing": SubjectSpec(pose="standing", seed=1),
@@ -96,7 +96,7 @@ QUICK_CASES = ("tiny_100px", "from_behind")
 NOT_COVERED = {
     "hands touching the face / hand-hand contact / fingers":
         "no synthetic pose or fixture scan has them yet (hands_on_hips covers hands touching the body)",
-    "long coat": "no coat garment mesh in humanvdm_core.synthetic (the gown covers loose clothing)",
+    "long coat": "no coat garment mesh in testdata.synthetic (the gown covers loose clothing)",
 }
 
 
@@ -105,7 +105,7 @@ NOT_COVERED = {
 def subject_mesh(key: str, work: Path):
     """The synthetic subject ``key`` as a (world-frame) TexturedMesh, made once into ``work/subjects``."""
     from humanvdm_core.scans import load_scan
-    from humanvdm_core.synthetic import make_subject
+    from testdata.synthetic import make_subject
 
     spec = synthetic_specs()[key]
     folder = work / "subjects" / key

@@ -120,7 +120,7 @@ class BodyProxy:
 
 def resolve_photo(path: str | Path) -> Path:
     """The photo a ``photo`` artifact names: the file itself, or a folder's ``input.*`` (else its one file)."""
-    from humanvdm_core.errors import InputError
+    from humanvdm_core.workflow.errors import InputError
 
     path = Path(path)
     if path.is_file():
@@ -320,8 +320,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
 
     from humanvdm_core.body import load_body_model
     from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body
-    from humanvdm_core.errors import ConfigError
     from humanvdm_core.perception.facing import estimate_facing
+    from humanvdm_core.workflow.errors import ConfigError
 
     if geometry not in GEOMETRIES:
         raise ConfigError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")

@@ -10,7 +10,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from humanvdm_core.errors import ConfigError, InputError
+from humanvdm_core.workflow.errors import ConfigError, InputError
 
 LOG = logging.getLogger("humanvdm.evaluate")
 
@@ -321,7 +321,7 @@ def write_media(out: Path, frame_paths: list[Path], background, gaussians: str |
 def write_html(path, report: dict) -> None:
     import html
 
-    from humanvdm_core.io import atomic_write_text
+    from humanvdm_core.workflow.atomic import atomic_write_text
 
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Human-VDM evaluation</title>",
              "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
@@ -384,7 +384,8 @@ def evaluate_gaussians(gaussians: str | Path, frames_dir: str | Path, scan: str 
     from humanvdm_core import metrics as M
     from humanvdm_core.cameras import Cameras, orbit_cameras
     from humanvdm_core.frames import open_frame_set, read_frame
-    from humanvdm_core.io import atomic_write_text, write_png
+    from humanvdm_core.io import write_png
+    from humanvdm_core.workflow.atomic import atomic_write_text
 
     opts.check()
     res = opts.resolution
@@ -464,7 +465,7 @@ def evaluate_gaussians(gaussians: str | Path, frames_dir: str | Path, scan: str 
             log.info("geometry: p2s %.4f, s2p %.4f, chamfer %.4f (%.2f%% of height)", geometry["p2s"],
                          geometry["s2p"], geometry["chamfer"], 100 * geometry["chamfer_rel"])
 
-    from humanvdm_core.progress import report as progress
+    from humanvdm_core.workflow.progress import report as progress
 
     perceptual = Perceptual(opts, log)
     group_views = {k: iter(v) for k, v in views.items()}

@@ -77,7 +77,7 @@ def read_frames(root: str | Path, layer: str = FRAMES_DIR, indices: Sequence[int
 def open_frame_set(root: str | Path) -> tuple[list[Path], Cameras]:
     """The frame paths and cameras of a frame set, checked to match; InputError when they cannot
     be read or do not match (the user-facing check every stage reading frames makes)."""
-    from humanvdm_core.errors import InputError
+    from humanvdm_core.workflow.errors import InputError
 
     try:
         paths = frame_paths(root)

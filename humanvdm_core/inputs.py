@@ -17,9 +17,9 @@ import re
 import unicodedata
 from pathlib import Path
 
-from humanvdm_core.errors import HumanVDMError, InputError
-from humanvdm_core.scheduler import Subject
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.errors import HumanVDMError, InputError
+from humanvdm_core.workflow.scheduler import Subject
+from humanvdm_core.workflow.store import Store
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff", ".exr"}
 MESH_SUFFIXES = {".obj", ".glb", ".gltf", ".ply"}
@@ -87,7 +87,7 @@ def import_subject(store: Store, subject: Subject) -> str | None:
     """Put the subject's files in the store (once) and set ``subject.input_id``.
 
     A file that cannot be read (permissions, I/O error) raises :class:`InputError` naming it; a full
-    disk raises :class:`~humanvdm_core.errors.DiskFullError`. An empty file is not imported: it sets
+    disk raises :class:`~humanvdm_core.workflow.errors.DiskFullError`. An empty file is not imported: it sets
     ``subject.error`` (its stages fail with it) and returns None."""
     src = subject.source
     try:

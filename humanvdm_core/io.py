@@ -1,9 +1,9 @@
-"""Artifact file formats: EXR images (OpenImageIO), NPZ arrays, PNG exports, atomic writes.
+"""Artifact file formats: EXR images (OpenImageIO), NPZ arrays, PNG exports.
 
 Contracts:
-- Every write is atomic: data goes to a temporary file in the destination folder, then
-  ``os.replace`` puts it in place, so a killed process never leaves a half-written file under
-  the final name.
+- Every write is atomic (:mod:`humanvdm_core.workflow.atomic`): data goes to a temporary file in
+  the destination folder, then ``os.replace`` puts it in place, so a killed process never leaves a
+  half-written file under the final name.
 - Writes are deterministic: the same arrays and attributes give the same bytes (NPZ members get a
   fixed timestamp, EXR headers carry no time), so content hashes are stable across reruns.
 - EXR: half-float channels, ZIP compression, ``oiio:ColorSpace`` stated, a ``humanvdm:pixel_hash``
@@ -17,59 +17,21 @@ Contracts:
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import hashlib
 import io
 import os
 import shutil
-import tempfile
 import zipfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from humanvdm_core.workflow.atomic import atomic_path, atomic_write_bytes
+
 EXR_COLORSPACE = "sRGB"  # frames hold display-referred sRGB-encoded values, as SV3D/CodeFormer expect
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
-
-
-def _read_umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-_FILE_MODE = 0o666 & ~_read_umask()  # what open() would give; mkstemp's 0600 is for secrets, not artifacts
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it is renamed onto ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        os.chmod(tmp_path, _FILE_MODE)
-        os.replace(tmp_path, path)
-    finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 # ----------------------------------------------------------------------------- EXR

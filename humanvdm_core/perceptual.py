@@ -47,7 +47,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from humanvdm_core.errors import HumanVDMError, require_weights
+from humanvdm_core.errors import require_weights
+from humanvdm_core.workflow.errors import HumanVDMError
 
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"
 LPIPS_HEADS_FILE = "alex.pth"

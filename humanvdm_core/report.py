@@ -22,9 +22,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from humanvdm_core.io import atomic_write_text
-from humanvdm_core.scheduler import LOCK_NAME, read_lockfile
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.atomic import atomic_write_text
+from humanvdm_core.workflow.scheduler import LOCK_NAME, read_lockfile
+from humanvdm_core.workflow.store import Store
 
 REPORT_NAME = "report.html"
 ASSETS = "report_files"

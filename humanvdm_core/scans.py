@@ -14,7 +14,7 @@ Contract:
   ignores a skinned mesh node's transform). Colour factors (OBJ ``Kd``, glTF ``baseColorFactor``)
   are ignored when a texture is present and used as the colour when there is none; texture alpha
   is ignored; a mesh with neither texture nor colours gets :data:`UNCOLORED_GRAY`.
-  Unusable input raises :class:`humanvdm_core.errors.InputError`.
+  Unusable input raises :class:`humanvdm_core.workflow.errors.InputError`.
 - :func:`normalize_scan` centres the bounding box at the origin and scales the vertical (Y)
   extent to ``height`` world units (default :data:`DEFAULT_SUBJECT_HEIGHT` = 1.7, about a
   person's height in metres, so body models fit at their natural scale). Scans are expected Y up,
@@ -37,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from humanvdm_core.errors import InputError
-from humanvdm_core.io import atomic_write_bytes, atomic_write_text, write_png
+from humanvdm_core.io import write_png
+from humanvdm_core.workflow.atomic import atomic_write_bytes, atomic_write_text
+from humanvdm_core.workflow.errors import InputError
 
 MESH_SUFFIXES = (".obj", ".glb", ".gltf", ".ply")
 DEFAULT_SUBJECT_HEIGHT = 1.7

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humanvdm_core.errors import HumanVDMError, InputError
+from humanvdm_core.workflow.errors import HumanVDMError, InputError
 
 ORBIT_FOLDERS = ("diffuse/orbit", "render-training-orbits/orbit")
 THUMB_PX = 128

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 SV3D_BACKENDS = ("sv3d_p", "sv3d_u")
 
@@ -86,7 +86,7 @@ PROXY_FILE = "proxy.npz"  # the clothed proxy beside the orbit (body-prior, geom
 
 
 def _check_params(p: dict, backend: str = "body-prior") -> None:
-    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.workflow.errors import ConfigError
 
     checks = [
         (p["num_frames"] >= 1, "num_frames must be >= 1"),

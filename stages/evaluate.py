@@ -44,7 +44,7 @@ whose frames lack ``world_from_scan``, a perceptual weight file with the wrong k
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 WEIGHTS_DIR = "~/.cache/humanvdm/weights"
 

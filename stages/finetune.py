@@ -22,7 +22,7 @@ Stability AI Community License) are never downloaded: a missing file exits 3 bef
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 SPEC = StageSpec(
     name="finetune",
@@ -58,9 +58,9 @@ def run(ctx: StageContext) -> None:
     import torch
 
     from humanvdm_core.errors import require_weights
-    from humanvdm_core.io import atomic_write_text
     from humanvdm_core.models import sv3d
     from humanvdm_core.models import sv3d_finetune as ft
+    from humanvdm_core.workflow.atomic import atomic_write_text
 
     p = ctx.params
     opts = ft.FinetuneOptions(steps=p["steps"], lr=p["lr"], batch_size=p["batch_size"], micro_batch=p["micro_batch"],

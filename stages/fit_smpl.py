@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import re
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 SCHEMA = "humanvdm.body_fit"
 SCHEMA_VERSION = 1
@@ -93,7 +93,7 @@ def select_frames(azimuth_deg, spec: str) -> list[int]:
     """Frame indices to use: all, or ``n`` spread evenly by azimuth starting at the frame nearest 0."""
     import numpy as np
 
-    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.workflow.errors import ConfigError
 
     n_total = len(azimuth_deg)
     key = spec.strip().lower()
@@ -178,9 +178,10 @@ def run(ctx: StageContext) -> None:
     import torch
 
     from humanvdm_core.body.fit import FitOptions, fit_body, load_body_model, observe_frames, silhouette_iou
-    from humanvdm_core.errors import ConfigError, InputError
     from humanvdm_core.frames import open_frame_set, read_frames
-    from humanvdm_core.io import atomic_write_text, write_npz
+    from humanvdm_core.io import write_npz
+    from humanvdm_core.workflow.atomic import atomic_write_text
+    from humanvdm_core.workflow.errors import ConfigError, InputError
 
     p = ctx.params
     if not 8 <= p["uv_resolution"] <= 4096:

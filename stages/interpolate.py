@@ -1,6 +1,6 @@
 """Stage ``interpolate`` (paper section 3.2): N orbit frames -> (N-1)*2**passes+1 frames with cameras.
 
-Reads a frame set, writes a frame set (see :mod:`humanvdm_core.interpolate` for the full contract):
+Reads a frame set, writes a frame set (see :mod:`humanvdm_core.interpolate.core` for the full contract):
 21 key frames become 81 with the default two ×2 passes; key frames are kept unchanged, the
 in-between cameras are slerped along the orbit; depth/normals layers are not carried over.
 
@@ -16,7 +16,7 @@ get it, before any frame is read.
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 SPEC = StageSpec(
     name="interpolate",
@@ -50,8 +50,8 @@ SPEC = StageSpec(
 
 
 def run(ctx: StageContext) -> None:
-    from humanvdm_core.errors import ConfigError
-    from humanvdm_core.interpolate import InterpolateOptions, interpolate_frame_set
+    from humanvdm_core.interpolate.core import InterpolateOptions, interpolate_frame_set
+    from humanvdm_core.workflow.errors import ConfigError
 
     p = ctx.params
     if not 0 <= p["passes"] <= 6:
@@ -63,11 +63,11 @@ def run(ctx: StageContext) -> None:
                               rife_weights=p["rife_weights"], pervfi_weights=p["pervfi_weights"],
                               pervfi_flow_weights=p["pervfi_flow_weights"])
     if ctx.backend == "rife":  # fail before reading any frame
-        from humanvdm_core.models import rife
+        from humanvdm_core.interpolate import rife
 
         rife.load(opts.rife_weights)
     elif ctx.backend == "pervfi":
-        from humanvdm_core.models import pervfi
+        from humanvdm_core.interpolate import pervfi
 
         pervfi.load(opts.pervfi_weights, opts.pervfi_flow_weights)
     interpolate_frame_set(ctx.inputs["frames"], ctx.outputs["frames"], opts, backend=ctx.backend,

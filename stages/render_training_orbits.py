@@ -19,7 +19,7 @@ so the last frame (azimuth 0) is the front view.
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 NAMED_BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0), "gray": (0.5, 0.5, 0.5),
                      "grey": (0.5, 0.5, 0.5)}
@@ -48,7 +48,7 @@ def background_colour(spec: str, seed: int) -> tuple[float, float, float]:
     """The background colour a ``background`` param names (``random``: uniform in [0, 1]^3 from ``seed``)."""
     import numpy as np
 
-    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.workflow.errors import ConfigError
 
     key = spec.strip().lower()
     if key == "random":
@@ -66,7 +66,7 @@ def background_colour(spec: str, seed: int) -> tuple[float, float, float]:
 
 
 def _check_params(p: dict) -> None:
-    from humanvdm_core.errors import ConfigError
+    from humanvdm_core.workflow.errors import ConfigError
 
     checks = [
         (p["num_frames"] >= 1, "num_frames must be >= 1"),

@@ -46,7 +46,7 @@ Deterministic: same inputs + params + seed -> identical ``gaussians.npz`` and PL
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 SPEC = StageSpec(
     name="splat-optimize",
@@ -107,8 +107,8 @@ SPEC = StageSpec(
 
 def resolve_settings(p: dict, cuda: bool) -> dict:
     """The preset's uv_resolution / train_resolution / iterations / tile_size with explicit params applied."""
-    from humanvdm_core.errors import ConfigError
     from humanvdm_core.splat.human import PRESETS
+    from humanvdm_core.workflow.errors import ConfigError
 
     name = p["preset"] if p["preset"] != "auto" else ("full" if cuda else "cpu")
     out = {"preset": name, **PRESETS[name]}
@@ -128,11 +128,11 @@ def run(ctx: StageContext) -> None:
     import numpy as np
     import torch
 
-    from humanvdm_core.errors import ConfigError
     from humanvdm_core.frames import read_cameras
     from humanvdm_core.io import write_npz, write_png
     from humanvdm_core.splat import human as H
     from humanvdm_core.splat.template import init_colors, start_anchor
+    from humanvdm_core.workflow.errors import ConfigError
 
     p = ctx.params
     cuda = torch.cuda.is_available()

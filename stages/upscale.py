@@ -1,6 +1,6 @@
 """Stage ``upscale`` (paper section 3.2): orbit frames -> ``target_size``² frames.
 
-Reads a frame set, writes a frame set (see :mod:`humanvdm_core.upscale` for the full contract).
+Reads a frame set, writes a frame set (see :mod:`humanvdm_core.upscale.core` for the full contract).
 Frames already at ``target_size``² pass through as a byte-identical copy (same artifact id).
 
 Backends: ``embedded`` (no weights, the default); ``realesrgan`` (Real-ESRGAN RRDBNet on the whole
@@ -12,7 +12,7 @@ weight file stops the stage (exit 3) naming the file and where to get it.
 
 from __future__ import annotations
 
-from humanvdm_core.stage import Param, StageContext, StageSpec
+from humanvdm_core.workflow.stage import Param, StageContext, StageSpec
 
 WEIGHTS = "~/.cache/humanvdm/weights"
 
@@ -41,8 +41,8 @@ SPEC = StageSpec(
 
 
 def run(ctx: StageContext) -> None:
-    from humanvdm_core.errors import ConfigError
-    from humanvdm_core.upscale import UpscaleOptions, upscale_frame_set
+    from humanvdm_core.upscale.core import UpscaleOptions, upscale_frame_set
+    from humanvdm_core.workflow.errors import ConfigError
 
     p = ctx.params
     if p["target_size"] < 1:
@@ -57,11 +57,11 @@ def run(ctx: StageContext) -> None:
                           sharpen_sigma=p["sharpen_sigma"], realesrgan_weights=p["realesrgan_weights"],
                           codeformer_weights=p["codeformer_weights"], fidelity=p["fidelity"], tile=p["tile"])
     if ctx.backend in ("realesrgan", "codeformer"):  # fail before reading any frame
-        from humanvdm_core.models import rrdbnet
+        from humanvdm_core.upscale import rrdbnet
 
         rrdbnet.load(opts.realesrgan_weights)
         if ctx.backend == "codeformer":
-            from humanvdm_core.models import codeformer
+            from humanvdm_core.upscale import codeformer
 
             codeformer.load(opts.codeformer_weights)
     upscale_frame_set(ctx.inputs["frames"], ctx.outputs["frames"], opts, backend=ctx.backend,

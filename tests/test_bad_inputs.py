@@ -35,9 +35,9 @@ import pytest
 import yaml
 
 from humanvdm_core.frames import frame_paths, read_cameras, read_frames
-from humanvdm_core.procedural import write_person
-from humanvdm_core.scheduler import read_lockfile
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.scheduler import read_lockfile
+from humanvdm_core.workflow.store import Store
+from testdata.procedural import write_person
 from tests.toyproject import ToyProject
 
 pytestmark = pytest.mark.slow
@@ -112,7 +112,7 @@ def test_a_path_that_cannot_be_an_input_stops_the_command_before_anything_runs(t
 
     # a file the user may not read (cannot be made so for root: the read is made to fail)
     from humanvdm_core import cli
-    from humanvdm_core.hashing import StatCache
+    from humanvdm_core.workflow.hashing import StatCache
 
     locked = tmp_path / "locked.png"
     locked.write_bytes(RYOTA.read_bytes())

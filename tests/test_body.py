@@ -25,7 +25,7 @@ from humanvdm_core.body import (  # noqa: E402
     axis_angle_to_matrix,
     lbs,
 )
-from humanvdm_core.errors import ConfigError  # noqa: E402
+from humanvdm_core.workflow.errors import ConfigError  # noqa: E402
 
 NOSE, L_EAR, R_EAR = 0, 3, 4
 L_SHOULDER, R_SHOULDER, L_WRIST, R_WRIST = 5, 6, 9, 10

@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from humanvdm_core.scheduler import read_lockfile
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.scheduler import read_lockfile
+from humanvdm_core.workflow.store import Store
 from tests.toyproject import ToyProject
 
 

@@ -105,7 +105,7 @@ def test_skirt_width_from_the_side(tmp_path):
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.synthetic import GARMENT_EXAMPLES, make_subject
+    from testdata.synthetic import GARMENT_EXAMPLES, make_subject
 
     torch.set_num_threads(1)
     mesh = normalize_scan(load_scan(make_subject(GARMENT_EXAMPLES["skirt_long_hair"], tmp_path / "s",
@@ -141,7 +141,7 @@ def _photo_of(spec, root, size: int = 256):
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.synthetic import make_subject
+    from testdata.synthetic import make_subject
 
     mesh = normalize_scan(load_scan(make_subject(spec, root / "subject", texture_size=256)))
     cams = orbit_cameras(1, size, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([0.0]))
@@ -161,7 +161,7 @@ def test_the_run_says_what_it_guessed(tmp_path, case, expected):
     pytest.importorskip("anny")
     pytest.importorskip("mediapipe")
     from humanvdm_core.body_prior import build_body_proxy
-    from humanvdm_core.synthetic import GARMENT_EXAMPLES, SubjectSpec
+    from testdata.synthetic import GARMENT_EXAMPLES, SubjectSpec
 
     torch.set_num_threads(1)
     spec = GARMENT_EXAMPLES["gown"] if case == "gown" else SubjectSpec(pose="seated", seed=5)

@@ -36,7 +36,7 @@ def _render_photo(root: Path, azimuth: float = 0.0) -> Path:
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.synthetic import SubjectSpec, make_subject
+    from testdata.synthetic import SubjectSpec, make_subject
 
     obj = make_subject(SubjectSpec(pose="a-pose", seed=1), root / "subject", texture_size=512)
     mesh = normalize_scan(load_scan(obj), 1.7)

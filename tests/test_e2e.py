@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from humanvdm_core.frames import frame_paths, read_cameras
-from humanvdm_core.procedural import write_person
-from humanvdm_core.scheduler import read_lockfile
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.scheduler import read_lockfile
+from humanvdm_core.workflow.store import Store
+from testdata.procedural import write_person
 
 pytestmark = pytest.mark.slow
 
@@ -59,7 +59,7 @@ def test_whole_pipeline_on_a_synthetic_subject(tmp_path):
     import json
 
     from humanvdm_core.splat.human import read_ply
-    from humanvdm_core.synthetic import SubjectSpec, make_subject
+    from testdata.synthetic import SubjectSpec, make_subject
 
     scan = tmp_path / "subject"
     make_subject(SubjectSpec(pose="a-pose", seed=3), scan, texture_size=512)

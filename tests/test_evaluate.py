@@ -17,8 +17,8 @@ from humanvdm_core.frames import write_frames
 from humanvdm_core.io import read_npz, write_npz
 from humanvdm_core.metrics import triangle_areas
 from humanvdm_core.perceptual import ALEXNET_CONVS, LPIPS_CHANNELS, CLIPImageEncoder
-from humanvdm_core.procedural import write_person
 from humanvdm_core.scans import framing_radius, load_scan, normalization_transform
+from testdata.procedural import write_person
 
 REPO = Path(__file__).resolve().parents[1]
 FRAME_SIZE = 96

@@ -140,9 +140,9 @@ def test_stage_missing_base_weights_exit_3(orbits_dir, tmp_path):
 def test_training_pipeline_renders_a_scan_then_finetunes_and_caches(tiny_base, tmp_path):
     """training.yaml through the scheduler: scan -> render-training-orbits -> finetune; a rerun does no work,
     a new finetune param reruns finetune alone."""
-    from humanvdm_core.procedural import write_person
-    from humanvdm_core.scheduler import read_lockfile
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.scheduler import read_lockfile
+    from humanvdm_core.workflow.store import Store
+    from testdata.procedural import write_person
 
     scan = write_person(tmp_path / "person", name="person", segments=8).parent
     store = tmp_path / "artifacts"

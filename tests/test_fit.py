@@ -47,7 +47,7 @@ def orbit(tmp_path_factory):
     torch.set_num_threads(1)
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalization_transform
-    from humanvdm_core.synthetic import SubjectSpec, make_subject
+    from testdata.synthetic import SubjectSpec, make_subject
 
     root = tmp_path_factory.mktemp("fit")
     spec = SubjectSpec(gender=0.2, age=0.75, muscle=0.6, weight=0.35, height=0.4, pose="walking",
@@ -68,7 +68,7 @@ def _truth_in_frame(truth) -> tuple[np.ndarray, float]:
 
 
 def _fit(orbit_dir, cams, count: int, iterations: int):
-    from humanvdm_core.synthetic import body_model
+    from testdata.synthetic import body_model
 
     idx = select_frames(cams.azimuth_deg, str(count))
     frames = read_frames(orbit_dir, indices=idx)
@@ -116,7 +116,7 @@ def test_single_frame_fit(orbit):
 def test_left_right_swaps_are_resolved(orbit):
     """Detections with left and right exchanged are put back by the 3D estimate."""
     from humanvdm_core.body.fit import FrameObservation
-    from humanvdm_core.synthetic import body_model
+    from testdata.synthetic import body_model
 
     _, truth, cams = orbit
     true_joints, _ = _truth_in_frame(truth)

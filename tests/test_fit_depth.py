@@ -1,7 +1,7 @@
 """Depth from a single photo: the detector's 3D landmarks, the bone-direction term and the one-sided
 silhouette of :mod:`humanvdm_core.body.fit`, and the fit-smpl stage's warning summary.
 
-Synthetic subjects (:mod:`humanvdm_core.synthetic`, known true joints) rendered as one photo at
+Synthetic subjects (:mod:`testdata.synthetic`, known true joints) rendered as one photo at
 azimuth 0 (384², the way benchmarks/bench_pipeline.py renders its input photos), detected with
 MediaPipe and fitted from that photo alone. Measured on one thread (fit 150 iterations, about 4 s;
 subject + photo + detection about 5 s): seated knee angle 62-65 deg (true 77), thighs pointing
@@ -31,7 +31,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _aim(model, params, bone: str, child: str, direction) -> None:
     """Set ``bone``'s rotation (in place) so that ``child - bone`` points along the world ``direction``
-    (the delta-rotation convention of :func:`humanvdm_core.synthetic.pose_params`)."""
+    (the delta-rotation convention of :func:`testdata.synthetic.pose_params`)."""
     import roma
 
     names = model.joint_names
@@ -75,13 +75,13 @@ def photo(tmp_path_factory):
     pytest.importorskip("anny", reason="the 'anny' package is not installed")
     pytest.importorskip("mediapipe", reason="MediaPipe is not installed")
     torch.set_num_threads(1)
-    from humanvdm_core import synthetic
     from humanvdm_core.body.fit import observe_frames
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.io import read_npz
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.synthetic import SubjectSpec, make_subject
+    from testdata import synthetic
+    from testdata.synthetic import SubjectSpec, make_subject
 
     specs = {
         "seated": (SubjectSpec(gender=0.3, weight=0.45, pose="seated", seed=1), None),
@@ -117,7 +117,7 @@ def photo(tmp_path_factory):
 
 def _fit(obs, cam, **options):
     from humanvdm_core.body.fit import FitOptions, fit_body
-    from humanvdm_core.synthetic import body_model
+    from testdata.synthetic import body_model
 
     return fit_body(body_model(), cam, [obs], FitOptions(iterations=150, **options))
 
@@ -225,7 +225,7 @@ def test_bone_term_and_independent_3d_swaps():
     pytest.importorskip("anny", reason="the 'anny' package is not installed")
     from humanvdm_core.body.fit import FitOptions, FrameObservation, _Problem, project
     from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.synthetic import body_model, pose_params
+    from testdata.synthetic import body_model, pose_params
 
     model = body_model()
     params = pose_params(model, "walking", model.default_shape(1))

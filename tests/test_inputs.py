@@ -6,9 +6,9 @@ import os
 
 import pytest
 
-from humanvdm_core.errors import InputError
 from humanvdm_core.inputs import discover, import_subject
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.errors import InputError
+from humanvdm_core.workflow.store import Store
 
 
 def touch(path, data=b"x"):

@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 
 from humanvdm_core.cameras import orbit_azimuths, orbit_cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import frame_paths, read_cameras, read_frames, write_frames
-from humanvdm_core.interpolate import (
+from humanvdm_core.interpolate.core import (
     InterpolateOptions,
     interpolate_frame_set,
     interpolate_interval,
     time_flows,
 )
 from humanvdm_core.io import read_exr
+from humanvdm_core.workflow.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 BACKGROUND = np.array([0.45, 0.5, 0.55], np.float32)
@@ -186,7 +186,7 @@ def test_stage_command_line(tmp_path):
 
 
 def test_stage_defaults_match_the_library():
-    from humanvdm_core import interpolate
+    from humanvdm_core.interpolate import core as interpolate
     from stages.interpolate import SPEC
 
     lib = interpolate.InterpolateOptions()

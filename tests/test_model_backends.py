@@ -19,7 +19,7 @@ from humanvdm_core.errors import MissingWeightsError  # noqa: E402
 from humanvdm_core.frames import frame_paths, read_cameras, write_frames  # noqa: E402
 from humanvdm_core.io import read_exr  # noqa: E402
 from humanvdm_core.models.checkpoint import CheckpointError  # noqa: E402
-from humanvdm_core.upscale import UpscaleOptions, upscale_embedded  # noqa: E402
+from humanvdm_core.upscale.core import UpscaleOptions, upscale_embedded  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,7 @@ def _seeded(seed: int = 0) -> None:
 
 
 def save_tiny_realesrgan(path: Path, scale: int = 4, seed: int = 0) -> Path:
-    from humanvdm_core.models.rrdbnet import RRDBNet
+    from humanvdm_core.upscale.rrdbnet import RRDBNet
 
     _seeded(seed)
     net = RRDBNet(scale=scale, num_feat=8, num_block=1, num_grow_ch=4)
@@ -51,7 +51,7 @@ def save_tiny_realesrgan(path: Path, scale: int = 4, seed: int = 0) -> Path:
 
 
 def save_tiny_codeformer(path: Path, seed: int = 0) -> Path:
-    from humanvdm_core.models.codeformer import CodeFormer
+    from humanvdm_core.upscale.codeformer import CodeFormer
 
     _seeded(seed)
     net = CodeFormer(nf=32, ch_mult=(1, 1, 1, 1), emb_dim=8, codebook_size=16, dim_embd=16, n_layers=1,
@@ -61,7 +61,7 @@ def save_tiny_codeformer(path: Path, seed: int = 0) -> Path:
 
 
 def save_tiny_rife(path: Path, seed: int = 0) -> Path:
-    from humanvdm_core.models.rife import IFNet
+    from humanvdm_core.interpolate.rife import IFNet
 
     _seeded(seed)
     net = IFNet([(7, 16, 1), (12, 16, 1), (12, 8, 1), (12, 8, 1)])
@@ -90,8 +90,8 @@ def run_stage(module: str, *args: str) -> subprocess.CompletedProcess:
 # ----------------------------------------------------------------------------- Real-ESRGAN
 
 def test_realesrgan_layout_shapes_determinism_and_alpha(tmp_path):
-    from humanvdm_core.models import rrdbnet
-    from humanvdm_core.upscale import BACKENDS
+    from humanvdm_core.upscale import rrdbnet
+    from humanvdm_core.upscale.core import BACKENDS
 
     path = save_tiny_realesrgan(tmp_path / "RealESRGAN_x4plus.pth")
     sd = torch.load(path, weights_only=True)["params_ema"]
@@ -109,7 +109,7 @@ def test_realesrgan_layout_shapes_determinism_and_alpha(tmp_path):
 
 
 def test_realesrgan_tiling_matches_whole_frame(tmp_path):
-    from humanvdm_core.models import rrdbnet
+    from humanvdm_core.upscale import rrdbnet
 
     net = rrdbnet.load(save_tiny_realesrgan(tmp_path / "x4.pth"))
     rgb = np.random.default_rng(1).random((30, 26, 3)).astype(np.float32)
@@ -121,7 +121,7 @@ def test_realesrgan_tiling_matches_whole_frame(tmp_path):
 
 @pytest.mark.parametrize("scale", [2, 1])
 def test_realesrgan_x2_and_x1_checkpoints(tmp_path, scale):
-    from humanvdm_core.models import rrdbnet
+    from humanvdm_core.upscale import rrdbnet
 
     net = rrdbnet.load(save_tiny_realesrgan(tmp_path / f"x{scale}.pth", scale=scale))
     assert net.scale == scale
@@ -130,7 +130,7 @@ def test_realesrgan_x2_and_x1_checkpoints(tmp_path, scale):
 
 
 def test_wrong_checkpoint_layout_lists_missing_and_unexpected_keys(tmp_path):
-    from humanvdm_core.models import rrdbnet
+    from humanvdm_core.upscale import rrdbnet
 
     sd = torch.load(save_tiny_realesrgan(tmp_path / "ok.pth"), weights_only=True)["params_ema"]
     sd["conv_hr_renamed.weight"] = sd.pop("conv_hr.weight")
@@ -149,7 +149,8 @@ def test_wrong_checkpoint_layout_lists_missing_and_unexpected_keys(tmp_path):
 
 
 def test_missing_weights_name_the_file_and_where_to_get_it(tmp_path):
-    from humanvdm_core.models import codeformer, rife, rrdbnet
+    from humanvdm_core.interpolate import rife
+    from humanvdm_core.upscale import codeformer, rrdbnet
 
     for mod, name, where in ((rrdbnet, "RealESRGAN_x4plus.pth", "xinntao/Real-ESRGAN"),
                              (codeformer, "codeformer.pth", "sczhou/CodeFormer"),
@@ -177,9 +178,9 @@ def test_upscale_stage_cli_realesrgan_and_missing_weights(tmp_path):
 
 
 def test_weight_file_hash_joins_the_stage_key_only_for_its_backends(tmp_path):
-    from humanvdm_core.pipeline import load_pipeline
-    from humanvdm_core.scheduler import Scheduler
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.pipeline import load_pipeline
+    from humanvdm_core.workflow.scheduler import Scheduler
+    from humanvdm_core.workflow.store import Store
 
     weights = save_tiny_realesrgan(tmp_path / "w.pth", seed=0)
     pipeline = load_pipeline(REPO / "pipeline.yaml")
@@ -204,7 +205,7 @@ def test_weight_file_hash_joins_the_stage_key_only_for_its_backends(tmp_path):
 # ----------------------------------------------------------------------------- CodeFormer
 
 def test_codeformer_layout_and_restore(tmp_path):
-    from humanvdm_core.models import codeformer
+    from humanvdm_core.upscale import codeformer
 
     path = save_tiny_codeformer(tmp_path / "codeformer.pth")
     sd = torch.load(path, weights_only=True)["params_ema"]
@@ -219,7 +220,7 @@ def test_codeformer_layout_and_restore(tmp_path):
 
 
 def test_codeformer_official_config_is_read_from_shapes():
-    from humanvdm_core.models.codeformer import CodeFormer, config_from_state_dict
+    from humanvdm_core.upscale.codeformer import CodeFormer, config_from_state_dict
 
     with torch.device("meta"):  # no memory: shapes only
         sd = CodeFormer().state_dict()
@@ -231,8 +232,8 @@ def test_codeformer_official_config_is_read_from_shapes():
 def test_codeformer_face_path_on_a_photo(tmp_path, fixtures_dir):
     import cv2
 
-    from humanvdm_core.models import faces
-    from humanvdm_core.upscale import BACKENDS
+    from humanvdm_core.upscale import faces
+    from humanvdm_core.upscale.core import BACKENDS
 
     photo = fixtures_dir / "photos" / "pifu_ryota.png"
     if not photo.is_file():
@@ -272,7 +273,7 @@ def test_codeformer_face_path_on_a_photo(tmp_path, fixtures_dir):
 
 
 def test_paste_back_is_feathered_and_aligned():
-    from humanvdm_core.models import faces
+    from humanvdm_core.upscale import faces
 
     lm = faces.FFHQ_TEMPLATE_512 / 8 + 10  # a face of 64 px at (10, 10) in a 96 px image
     m = faces.alignment(lm, 128)
@@ -288,8 +289,8 @@ def test_paste_back_is_feathered_and_aligned():
 # ----------------------------------------------------------------------------- RIFE
 
 def test_rife_layout_shapes_determinism_and_identity(tmp_path):
-    from humanvdm_core.interpolate import BACKENDS, InterpolateOptions
-    from humanvdm_core.models import rife
+    from humanvdm_core.interpolate import rife
+    from humanvdm_core.interpolate.core import BACKENDS, InterpolateOptions
 
     path = save_tiny_rife(tmp_path / "flownet.pkl")
     assert set(RIFE_KEYS) <= set(torch.load(path, weights_only=True))
@@ -304,7 +305,7 @@ def test_rife_layout_shapes_determinism_and_identity(tmp_path):
 
 
 def test_rife_warp_moves_pixels_by_the_flow():
-    from humanvdm_core.models.rife import backward_warp
+    from humanvdm_core.interpolate.rife import backward_warp
 
     img = torch.arange(5 * 7, dtype=torch.float32).reshape(1, 1, 5, 7)
     flow = torch.zeros(1, 2, 5, 7)
@@ -331,7 +332,8 @@ def test_interpolate_stage_cli_rife(tmp_path):
 # ----------------------------------------------------------------------------- stage wiring
 
 def test_stage_params_match_the_library_and_mark_weights():
-    from humanvdm_core import interpolate, upscale
+    from humanvdm_core.interpolate import core as interpolate
+    from humanvdm_core.upscale import core as upscale
     from stages.interpolate import SPEC as INTERP
     from stages.upscale import SPEC as UP
 

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from PIL import Image, ImageOps
 
-from humanvdm_core.errors import InputError
 from humanvdm_core.io import write_exr
 from humanvdm_core.perception import COCO17_NAMES, Photo, detect_person, load_photo
 from humanvdm_core.perception import image as image_module
 from humanvdm_core.perception.image import MAX_SIDE, srgb_encode
+from humanvdm_core.workflow.errors import InputError
 
 cv2.setNumThreads(1)
 

@@ -49,7 +49,7 @@ RAFT_KEYS = ["module.fnet.conv1.weight", "module.fnet.layer2.0.downsample.0.weig
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> tuple[Path, Path]:
-    from humanvdm_core.models import pervfi
+    from humanvdm_core.interpolate import pervfi
 
     folder = tmp_path_factory.mktemp("pervfi")
     return pervfi.save_random(folder / "v00.pth", folder / "raft-sintel.pth")
@@ -73,7 +73,7 @@ def run_stage(*args: str) -> subprocess.CompletedProcess:
 # ----------------------------------------------------------------------------- layout and loading
 
 def test_tiny_checkpoints_have_the_official_layout_and_sizes_come_from_shapes(tiny):
-    from humanvdm_core.models import pervfi, raft
+    from humanvdm_core.interpolate import pervfi, raft
 
     gen_path, flow_path = tiny
     gsd = torch.load(gen_path, weights_only=True)
@@ -87,7 +87,7 @@ def test_tiny_checkpoints_have_the_official_layout_and_sizes_come_from_shapes(ti
 
 
 def test_official_sizes_are_read_from_shapes():
-    from humanvdm_core.models import pervfi, raft
+    from humanvdm_core.interpolate import pervfi, raft
 
     with torch.device("meta"):  # shapes only, no memory
         gen = pervfi.Generator(pervfi.OFFICIAL).state_dict()
@@ -101,7 +101,7 @@ def test_official_sizes_are_read_from_shapes():
 
 
 def test_layout_errors_name_missing_and_unexpected_keys(tmp_path, tiny):
-    from humanvdm_core.models import pervfi, raft
+    from humanvdm_core.interpolate import pervfi, raft
 
     sd = torch.load(tiny[0], weights_only=True)
     sd["attentionMerge.softbinary.1.att_renamed.weight"] = sd.pop("attentionMerge.softbinary.1.att.weight")
@@ -130,7 +130,7 @@ def test_layout_errors_name_missing_and_unexpected_keys(tmp_path, tiny):
 
 
 def test_missing_weights_name_each_file_and_where_to_get_it(tmp_path, tiny):
-    from humanvdm_core.models import pervfi
+    from humanvdm_core.interpolate import pervfi
 
     with pytest.raises(MissingWeightsError) as e:
         pervfi.load(tmp_path / "v00.pth", tiny[1])
@@ -160,7 +160,7 @@ def brute_force_splat(x: np.ndarray, flow: np.ndarray) -> np.ndarray:
 
 
 def test_softsplat_matches_a_brute_force_splat():
-    from humanvdm_core.models.pervfi import softsplat
+    from humanvdm_core.interpolate.pervfi import softsplat
 
     rng = np.random.default_rng(0)
     x = rng.random((2, 3, 7, 9)).astype(np.float32)
@@ -182,7 +182,7 @@ def test_softsplat_matches_a_brute_force_splat():
 
 
 def test_zero_flow_splat_is_the_identity_and_holes_are_found():
-    from humanvdm_core.models.pervfi import binary_hole, softsplat
+    from humanvdm_core.interpolate.pervfi import binary_hole, softsplat
 
     x = torch.rand(1, 4, 6, 8)
     zero = torch.zeros(1, 2, 6, 8)
@@ -197,7 +197,7 @@ def test_zero_flow_splat_is_the_identity_and_holes_are_found():
 
 
 def test_deform_conv_matches_conv_and_shifts():
-    from humanvdm_core.models.pervfi import deform_conv2d
+    from humanvdm_core.interpolate.pervfi import deform_conv2d
 
     torch.manual_seed(0)
     x, weight, bias = torch.randn(1, 4, 6, 7), torch.randn(5, 4, 3, 3), torch.randn(5)
@@ -250,7 +250,7 @@ def brute_force_dcn(x, offset, mask, weight, bias):
 
 
 def test_deform_conv_matches_a_brute_force_reference():
-    from humanvdm_core.models.pervfi import deform_conv2d
+    from humanvdm_core.interpolate.pervfi import deform_conv2d
 
     rng = np.random.default_rng(1)
     x = rng.standard_normal((4, 5, 6))
@@ -263,7 +263,7 @@ def test_deform_conv_matches_a_brute_force_reference():
 
 
 def test_raft_correlation_lookup_keeps_the_reference_window_order():
-    from humanvdm_core.models.raft import LEVELS, CorrPyramid
+    from humanvdm_core.interpolate.raft import LEVELS, CorrPyramid
 
     torch.manual_seed(0)
     f1, f2 = torch.randn(1, 5, 16, 16), torch.randn(1, 5, 16, 16)
@@ -278,7 +278,7 @@ def test_raft_correlation_lookup_keeps_the_reference_window_order():
 
 
 def test_normalizing_flow_squeeze_round_trips():
-    from humanvdm_core.models.pervfi import squeeze2d, unsqueeze2d, z_shapes
+    from humanvdm_core.interpolate.pervfi import squeeze2d, unsqueeze2d, z_shapes
 
     x = torch.randn(2, 3, 8, 12)
     assert torch.equal(unsqueeze2d(squeeze2d(x)), x)
@@ -288,7 +288,7 @@ def test_normalizing_flow_squeeze_round_trips():
 # ----------------------------------------------------------------------------- inference
 
 def test_interpolate_pair_shape_determinism_and_seed(tiny):
-    from humanvdm_core.models import pervfi
+    from humanvdm_core.interpolate import pervfi
 
     model = pervfi.load(*tiny)
     f0, f1 = frame(60, 70, 0), frame(60, 70, 1)  # padded to 64 x 72 and cropped back
@@ -308,7 +308,7 @@ def test_interpolate_pair_shape_determinism_and_seed(tiny):
 def test_identical_frames_keep_their_alpha_with_zero_flow(tiny):
     """The generator's RGB is sampled (random weights here: no identity), but the alpha path
     splats and warps with the network's flows: two identical frames and zero flow give the same alpha."""
-    from humanvdm_core.models import pervfi
+    from humanvdm_core.interpolate import pervfi
 
     model = pervfi.load(*tiny)
     f = torch.from_numpy(frame(32, 40, 2)).permute(2, 0, 1)[None]
@@ -321,13 +321,13 @@ def test_identical_frames_keep_their_alpha_with_zero_flow(tiny):
 
 
 def test_backend_runs_recursive_whatever_the_schedule(tiny):
-    from humanvdm_core.interpolate import (
+    from humanvdm_core.interpolate import pervfi
+    from humanvdm_core.interpolate.core import (
         BACKENDS,
         InterpolateOptions,
         effective_schedule,
         interpolate_interval,
     )
-    from humanvdm_core.models import pervfi
 
     opts = InterpolateOptions(passes=2, schedule="direct", pervfi_weights=str(tiny[0]),
                               pervfi_flow_weights=str(tiny[1]))
@@ -344,7 +344,7 @@ def test_backend_runs_recursive_whatever_the_schedule(tiny):
 # ----------------------------------------------------------------------------- the stage
 
 def test_stage_params_and_backend_registration():
-    from humanvdm_core import interpolate
+    from humanvdm_core.interpolate import core as interpolate
     from stages.interpolate import SPEC
 
     assert "pervfi" in SPEC.backends and "pervfi" in interpolate.BACKENDS

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from humanvdm_core import progress as P
+from humanvdm_core.workflow import progress as P
 from tests.test_cli import cli, write_input
 from tests.toyproject import ToyProject
 

@@ -24,10 +24,10 @@ import pytest
 ray = pytest.importorskip("ray", reason="Ray is not installed (the 'cluster' extra)")
 psutil = pytest.importorskip("psutil")
 
-from humanvdm_core.executors import RETRY_NOTE, RayExecutor  # noqa: E402
-from humanvdm_core.pipeline import load_pipeline  # noqa: E402
-from humanvdm_core.scheduler import CACHED, RAN, Scheduler, read_lockfile  # noqa: E402
-from humanvdm_core.store import Store  # noqa: E402
+from humanvdm_core.workflow.executors import RETRY_NOTE, RayExecutor  # noqa: E402
+from humanvdm_core.workflow.pipeline import load_pipeline  # noqa: E402
+from humanvdm_core.workflow.scheduler import CACHED, RAN, Scheduler, read_lockfile  # noqa: E402
+from humanvdm_core.workflow.store import Store  # noqa: E402
 from tests.toyproject import ToyProject  # noqa: E402
 
 pytestmark = pytest.mark.slow

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 
 from humanvdm_core.cameras import Cameras, look_at, orbit_cameras
-from humanvdm_core.procedural import (
+from humanvdm_core.render import render_views
+from humanvdm_core.scans import TexturedMesh, framing_radius, load_scan, normalization_transform
+from testdata.procedural import (
     BACK_TORSO_COLORS,
     FRONT_TORSO_COLORS,
     LEFT_ARM,
     make_person,
     write_person,
 )
-from humanvdm_core.render import render_views
-from humanvdm_core.scans import TexturedMesh, framing_radius, load_scan, normalization_transform
 
 REPO = Path(__file__).resolve().parents[1]
 SOLDIER = REPO.parent / "shared" / "fixtures" / "scans" / "threejs_soldier" / "Soldier.glb"

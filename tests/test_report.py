@@ -12,9 +12,9 @@ from PIL import Image
 
 from humanvdm_core.io import write_png
 from humanvdm_core.report import write_run_report
-from humanvdm_core.scheduler import write_lockfile
 from humanvdm_core.splat import human as H
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.scheduler import write_lockfile
+from humanvdm_core.workflow.store import Store
 from tests import browser
 
 VERSIONS = {"python": "3.11.7", "numpy": "2.4.6", "torch": "2.13.0+cpu"}

@@ -7,8 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from humanvdm_core.errors import InputError
-from humanvdm_core.procedural import make_person, write_person
 from humanvdm_core.scans import (
     TexturedMesh,
     find_mesh_file,
@@ -19,6 +17,8 @@ from humanvdm_core.scans import (
     normalize_scan,
     save_obj,
 )
+from humanvdm_core.workflow.errors import InputError
+from testdata.procedural import make_person, write_person
 
 SCANS = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "scans"
 RENDERPEOPLE = SCANS / "renderpeople_rp_mei_posed_001"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from humanvdm_core.errors import ConfigError
-from humanvdm_core.scheduler import (
+from humanvdm_core.workflow.errors import ConfigError
+from humanvdm_core.workflow.scheduler import (
     BLOCKED,
     CACHED,
     FAILED,
@@ -179,7 +179,7 @@ def test_unknown_set_params_fail_before_running(toy):
     (lambda t: t.replace("stages:", "stages: [\n"), "invalid YAML"),
 ])
 def test_invalid_pipelines_fail_naming_the_problem(tmp_path, edit, message):
-    from humanvdm_core.pipeline import load_pipeline
+    from humanvdm_core.workflow.pipeline import load_pipeline
     from tests.toyproject import PIPELINE
 
     toy = ToyProject(tmp_path)
@@ -190,7 +190,7 @@ def test_invalid_pipelines_fail_naming_the_problem(tmp_path, edit, message):
 
 def test_real_pipeline_yaml_is_valid():
     from humanvdm_core.cli import REPO_ROOT
-    from humanvdm_core.pipeline import load_pipeline
+    from humanvdm_core.workflow.pipeline import load_pipeline
 
     pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
     assert {"render-training-orbits", "upscale", "interpolate"} <= {n for n, s in pipe.stages.items() if s.implemented}
@@ -202,9 +202,9 @@ def test_real_pipeline_yaml_is_valid():
 
 def test_photo_run_chooses_diffuse_scan_run_chooses_renderer():
     from humanvdm_core.cli import REPO_ROOT
-    from humanvdm_core.pipeline import load_pipeline
-    from humanvdm_core.scheduler import Subject
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.pipeline import load_pipeline
+    from humanvdm_core.workflow.scheduler import Subject
+    from humanvdm_core.workflow.store import Store
 
     pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
     sched = Scheduler(pipe, Store.__new__(Store))
@@ -216,10 +216,10 @@ def test_photo_run_chooses_diffuse_scan_run_chooses_renderer():
 
 
 def test_code_fingerprint_follows_project_imports_only():
-    from humanvdm_core.pipeline import _project_sources
+    from humanvdm_core.workflow.pipeline import _project_sources
 
     sources = _project_sources("stages.upscale", ("humanvdm_core", "stages"))
-    assert {"stages.upscale", "humanvdm_core.upscale", "humanvdm_core.io", "humanvdm_core.stage"} <= set(sources)
+    assert {"stages.upscale", "humanvdm_core.upscale.core", "humanvdm_core.io", "humanvdm_core.workflow.stage"} <= set(sources)
     assert "humanvdm_core.render" not in sources and "humanvdm_core.body.anny_model" not in sources
     assert not any(name.startswith(("numpy", "cv2", "torch")) for name in sources)
 
@@ -258,9 +258,9 @@ def test_optional_input_absent_from_the_run(tmp_path):
 
 def test_set_backend_chooses_a_stage_backend():
     from humanvdm_core.cli import REPO_ROOT
-    from humanvdm_core.pipeline import load_pipeline
-    from humanvdm_core.scheduler import Subject
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.pipeline import load_pipeline
+    from humanvdm_core.workflow.scheduler import Subject
+    from humanvdm_core.workflow.store import Store
 
     pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
     photo = Subject("p", "photo", REPO_ROOT)
@@ -304,7 +304,7 @@ def test_disk_full_in_a_stage_fails_that_run_with_one_line_and_leaves_nothing(to
 def test_disk_full_while_committing_fails_the_run_and_commits_nothing(toy, monkeypatch):
     import errno
 
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.store import Store
 
     subj = toy.subject("a", "x" * 2_500_000)  # shout's output: 2.5 MB
     before = set(toy.store.all_ids())
@@ -335,7 +335,7 @@ RESOURCES = """
 
 
 def test_resources_come_from_the_pipeline_its_when_and_set(tmp_path):
-    from humanvdm_core.pipeline import Resources
+    from humanvdm_core.workflow.pipeline import Resources
     from tests.toyproject import PIPELINE
 
     text = PIPELINE.replace("    inputs: {{src: $text}}\n    outputs: [out]\n",
@@ -366,7 +366,7 @@ def test_resources_come_from_the_pipeline_its_when_and_set(tmp_path):
     ("[1, 2]", "stage shout: resources must be a mapping"),
 ])
 def test_invalid_resources_fail_naming_the_stage(tmp_path, resources, message):
-    from humanvdm_core.pipeline import load_pipeline
+    from humanvdm_core.workflow.pipeline import load_pipeline
     from tests.toyproject import PIPELINE
 
     toy = ToyProject(tmp_path)
@@ -378,8 +378,8 @@ def test_invalid_resources_fail_naming_the_stage(tmp_path, resources, message):
 
 def test_real_pipeline_asks_a_gpu_only_for_gpu_settings():
     from humanvdm_core.cli import REPO_ROOT
-    from humanvdm_core.pipeline import load_pipeline
-    from humanvdm_core.store import Store
+    from humanvdm_core.workflow.pipeline import load_pipeline
+    from humanvdm_core.workflow.store import Store
 
     pipe = load_pipeline(REPO_ROOT / "pipeline.yaml")
     default = Scheduler(pipe, Store.__new__(Store))

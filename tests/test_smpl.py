@@ -24,7 +24,8 @@ from humanvdm_core.body import (
     load_body_model,
 )
 from humanvdm_core.body.smpl_model import SMPL_JOINT_NAMES, SMPLX_JOINT_NAMES, SMPLBody, load_model_file
-from humanvdm_core.errors import ConfigError, MissingWeightsError
+from humanvdm_core.errors import MissingWeightsError
+from humanvdm_core.workflow.errors import ConfigError
 from tests import smpl_tiny
 
 NOSE, L_EYE, R_EYE, L_EAR, R_EAR = 0, 1, 2, 3, 4

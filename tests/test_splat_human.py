@@ -35,7 +35,7 @@ def subject(tmp_path_factory) -> Path:
     from humanvdm_core.frames import write_frames
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalization_transform
-    from humanvdm_core.synthetic import SubjectSpec, make_subject
+    from testdata.synthetic import SubjectSpec, make_subject
 
     root = tmp_path_factory.mktemp("splat")
     obj = make_subject(SubjectSpec(shirt_pattern="stripes", seed=3), root / "subject", texture_size=256)

@@ -8,10 +8,10 @@ import os
 import numpy as np
 import pytest
 
-from humanvdm_core.hashing import StatCache, hash_tree
 from humanvdm_core.io import read_exr, read_npz, write_exr, write_npz
-from humanvdm_core.scheduler import CACHED, RAN, referenced_ids
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.hashing import StatCache, hash_tree
+from humanvdm_core.workflow.scheduler import CACHED, RAN, referenced_ids
+from humanvdm_core.workflow.store import Store
 from tests.toyproject import ToyProject
 
 
@@ -116,7 +116,7 @@ def test_cache_hit_rechecks_the_head_and_tail_bytes_of_every_file(tmp_path):
     """Even when every stat field matches (damage beneath the file system: simulated by giving the
     stat-cache row the damaged file's stat), a cache hit re-reads each file's first and last 64 KiB
     (small files whole); the middle of a large file is only checked by ``verify``."""
-    from humanvdm_core.hashing import EDGE_BYTES
+    from humanvdm_core.workflow.hashing import EDGE_BYTES
 
     store = Store(tmp_path / "store")
     staged = store.new_staging_dir()
@@ -190,7 +190,7 @@ def test_a_run_removes_the_staging_folders_of_dead_processes_of_its_host_only(tm
     import subprocess
     import sys
 
-    from humanvdm_core.store import HOST
+    from humanvdm_core.workflow.store import HOST
 
     store = Store(tmp_path / "s")
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)

@@ -1,4 +1,4 @@
-"""Synthetic subjects (humanvdm_core.synthetic): meshes, pose semantics, texture layout, determinism,
+"""Synthetic subjects (testdata.synthetic): meshes, pose semantics, texture layout, determinism,
 files that load through trimesh and humanvdm_core.scans.
 
 Needs the ``anny`` package (skipped otherwise) and its warm model cache (see humanvdm_core.body).
@@ -20,9 +20,9 @@ pytest.importorskip("anny", reason="the 'anny' package is not installed (pip ins
 
 from humanvdm_core.body import BodyParams  # noqa: E402
 from humanvdm_core.body.model import COCO17_NAMES  # noqa: E402
-from humanvdm_core.errors import ConfigError  # noqa: E402
 from humanvdm_core.io import read_npz  # noqa: E402
-from humanvdm_core.synthetic import (  # noqa: E402
+from humanvdm_core.workflow.errors import ConfigError  # noqa: E402
+from testdata.synthetic import (  # noqa: E402
     GARMENT_EXAMPLES,
     GARMENT_POSES,
     GARMENT_TEXTURE,

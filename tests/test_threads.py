@@ -1,8 +1,8 @@
-"""Thread budgets for stage processes (humanvdm_core.threads)."""
+"""Thread budgets for stage processes (humanvdm_core.workflow.threads)."""
 
 import os
 
-from humanvdm_core.threads import THREAD_VARS, available_cores, stage_threads, thread_env
+from humanvdm_core.workflow.threads import THREAD_VARS, available_cores, stage_threads, thread_env
 
 
 def test_available_cores_follows_affinity():

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from humanvdm_core.cameras import orbit_cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import frame_paths, read_cameras, read_frames, write_frames
 from humanvdm_core.io import read_exr, write_exr
-from humanvdm_core.upscale import UpscaleOptions, resample_color, upscale_embedded, upscale_frame_set
+from humanvdm_core.upscale.core import UpscaleOptions, resample_color, upscale_embedded, upscale_frame_set
+from humanvdm_core.workflow.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -166,7 +166,7 @@ def test_stage_command_line(tmp_path):
 
 
 def test_stage_defaults_match_the_library():
-    from humanvdm_core import upscale
+    from humanvdm_core.upscale import core as upscale
     from stages.upscale import SPEC
 
     defaults = {k: p.default for k, p in SPEC.params.items() if not p.weights}

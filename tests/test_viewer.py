@@ -111,9 +111,9 @@ def test_viewer_finds_a_run_and_serves_its_page(tmp_path):
     import urllib.request
 
     from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.errors import HumanVDMError
     from humanvdm_core.frames import write_frames
     from humanvdm_core.viewer import load_scene, serve
+    from humanvdm_core.workflow.errors import HumanVDMError
     from tests.test_report import fake_run
 
     root, run = fake_run(tmp_path)

@@ -21,16 +21,16 @@ import textwrap
 import uuid
 from pathlib import Path
 
-from humanvdm_core.pipeline import load_pipeline
-from humanvdm_core.scheduler import Scheduler, Subject
-from humanvdm_core.store import Store
+from humanvdm_core.workflow.pipeline import load_pipeline
+from humanvdm_core.workflow.scheduler import Scheduler, Subject
+from humanvdm_core.workflow.store import Store
 
 STAGE_HEAD = '''
 import time
 from pathlib import Path
 
-from humanvdm_core.errors import InputError
-from humanvdm_core.stage import Param, StageSpec
+from humanvdm_core.workflow.errors import InputError
+from humanvdm_core.workflow.stage import Param, StageSpec
 
 LEDGER = Path(__file__).resolve().parents[1] / "ledger.txt"
 

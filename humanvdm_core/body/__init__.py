@@ -20,7 +20,7 @@ from humanvdm_core.body.model import (
 )
 from humanvdm_core.body.smpl_model import SMPLBody, load_model_file
 from humanvdm_core.body.uvmap import UVPositionMap, rasterize_uv_triangles
-from humanvdm_core.errors import ConfigError
+from humanvdm_core.workflow.errors import ConfigError
 
 BACKENDS = ("anny", "smpl", "smplx")
 

@@ -46,7 +46,7 @@ from humanvdm_core.body.model import (
     global_transform,
     transform_points,
 )
-from humanvdm_core.errors import ConfigError
+from humanvdm_core.workflow.errors import ConfigError
 
 # topology -> (vertex count, has UVs, what it is)
 TOPOLOGIES: dict[str, tuple[int, bool, str]] = {

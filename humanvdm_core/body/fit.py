@@ -75,8 +75,8 @@ import torch
 from humanvdm_core.body import load_body_model
 from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams
 from humanvdm_core.cameras import Cameras
-from humanvdm_core.errors import ConfigError, HumanVDMError, InputError
-from humanvdm_core.progress import report
+from humanvdm_core.workflow.errors import ConfigError, HumanVDMError, InputError
+from humanvdm_core.workflow.progress import report
 
 log = logging.getLogger("humanvdm.body.fit")
 

@@ -75,7 +75,8 @@ from humanvdm_core.body.model import (
     global_transform,
     transform_points,
 )
-from humanvdm_core.errors import ConfigError, InputError, MissingWeightsError
+from humanvdm_core.errors import MissingWeightsError
+from humanvdm_core.workflow.errors import ConfigError, InputError
 
 KINDS = ("smpl", "smplx")
 GENDERS = ("neutral", "male", "female")

@@ -1,5 +1,6 @@
 """Layers of the VQGAN / latent-diffusion autoencoder family, shared by CodeFormer's VQGAN
-(:mod:`.codeformer`) and SV3D's autoencoder (:mod:`.sv3d_vae`), with their checkpoint names:
+(:mod:`humanvdm_core.upscale.codeformer`) and SV3D's autoencoder (:mod:`.sv3d_vae`), with their
+checkpoint names:
 
 - :func:`group_norm`: GroupNorm(32, C), eps 1e-6, affine (``Normalize`` in both code bases);
 - :class:`AttnBlock`: single-head spatial self-attention, 1x1 ``q``/``k``/``v``/``proj_out`` convs

@@ -17,7 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from humanvdm_core.errors import HumanVDMError, require_weights
+from humanvdm_core.errors import require_weights
+from humanvdm_core.workflow.errors import HumanVDMError
 
 _WRAPPERS = ("params_ema", "params", "state_dict", "model")
 _CACHE: dict[tuple, Any] = {}

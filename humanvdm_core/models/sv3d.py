@@ -65,7 +65,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from humanvdm_core.errors import ConfigError
 from humanvdm_core.models import openclip_vision, sv3d_unet, sv3d_vae
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
@@ -74,6 +73,7 @@ from humanvdm_core.models.checkpoint import (
     load_strict,
     read_state_dict,
 )
+from humanvdm_core.workflow.errors import ConfigError
 
 log = logging.getLogger("humanvdm.sv3d")
 
@@ -393,7 +393,7 @@ def synthesize_orbit(photo_path: str | Path, weights: str | Path, backend: str =
     cameras.extra.update({"background": np.ones(3, np.float64), "fill": np.float64(fill)})
 
     def progress(i: int, n: int) -> None:
-        from humanvdm_core.progress import report
+        from humanvdm_core.workflow.progress import report
 
         report(i, n, "steps", f"{model.kind} sampling")
         if i == n or i % max(1, n // 5) == 0:

@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from humanvdm_core.errors import InputError
 from humanvdm_core.models import sv3d
-from humanvdm_core.progress import report
+from humanvdm_core.workflow.errors import InputError
+from humanvdm_core.workflow.progress import report
 
 log = logging.getLogger("humanvdm.sv3d_finetune")
 
@@ -65,7 +65,7 @@ class FinetuneOptions:
     gradient_checkpointing: bool = True
 
     def check(self) -> None:
-        from humanvdm_core.errors import ConfigError
+        from humanvdm_core.workflow.errors import ConfigError
 
         checks = [(self.steps >= 1, "steps must be >= 1"), (self.lr > 0, "lr must be > 0"),
                   (self.batch_size >= 1, "batch_size must be >= 1"),
@@ -245,7 +245,7 @@ def state_key(base_weights: str | Path, orbits_root: str | Path, opts: FinetuneO
 
 
 def _save_state(path: Path, model: sv3d.SV3D, optimizer, gen: torch.Generator, step: int, losses: list[float]) -> None:
-    from humanvdm_core.io import atomic_path
+    from humanvdm_core.workflow.atomic import atomic_path
 
     state = {"step": step, "losses": losses, "unet": model.unet.state_dict(), "optimizer": optimizer.state_dict(),
              "generator": gen.get_state()}
@@ -318,7 +318,7 @@ def save_finetuned_checkpoint(base_weights: str | Path, model: sv3d.SV3D, path: 
     official layout (the diffuse stage's ``sv3d_p_weights`` / ``sv3d_u_weights`` take it)."""
     from safetensors.torch import load_file, save_file
 
-    from humanvdm_core.io import atomic_path
+    from humanvdm_core.workflow.atomic import atomic_path
 
     sd = load_file(str(Path(base_weights).expanduser()))
     unet_sd = {sv3d.UNET_PREFIX + k: v.detach().to("cpu", torch.float32).contiguous()
@@ -336,7 +336,7 @@ def save_unet_checkpoint(model: sv3d.SV3D, path: str | Path) -> Path:
     """The UNet alone, keys with the official ``model.diffusion_model.`` prefix (an intermediate snapshot)."""
     from safetensors.torch import save_file
 
-    from humanvdm_core.io import atomic_path
+    from humanvdm_core.workflow.atomic import atomic_path
 
     sd = {sv3d.UNET_PREFIX + k: v.detach().to("cpu", torch.float32).contiguous()
           for k, v in model.unet.state_dict().items()}

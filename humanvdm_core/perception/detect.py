@@ -55,8 +55,8 @@ import cv2
 import numpy as np
 
 from humanvdm_core.body.model import COCO17_NAMES
-from humanvdm_core.errors import HumanVDMError, InputError
 from humanvdm_core.perception.image import Photo, load_photo
+from humanvdm_core.workflow.errors import HumanVDMError, InputError
 
 # COCO-17 index -> BlazePose landmark index (see the module docstring).
 BLAZEPOSE_TO_COCO17: tuple[int, ...] = (0, 2, 5, 7, 8, 11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28)

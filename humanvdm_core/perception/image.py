@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humanvdm_core.errors import InputError
+from humanvdm_core.workflow.errors import InputError
 
 log = logging.getLogger("humanvdm.perception")
 

@@ -53,7 +53,7 @@ import torch
 
 from humanvdm_core import metrics
 from humanvdm_core.body.model import BodyParams, blend_transforms
-from humanvdm_core.errors import ConfigError, InputError
+from humanvdm_core.workflow.errors import ConfigError, InputError
 
 GAUSSIANS_SCHEMA = "humanvdm.gaussians"
 GAUSSIANS_VERSION = 1
@@ -662,8 +662,8 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
     """Optimise ``human`` (in place) against ``views``; returns the loss curve, the counts after each
     densify step and timings. The first ``coarse_fraction`` of the iterations train on half-resolution
     views; after each share in ``densify_at`` the set is pruned and split (:func:`densify`) and the
-    optimiser restarts. Progress goes to the stage's progress channel (:func:`humanvdm_core.progress.report`)."""
-    from humanvdm_core.progress import report
+    optimiser restarts. Progress goes to the stage's progress channel (:func:`humanvdm_core.workflow.progress.report`)."""
+    from humanvdm_core.workflow.progress import report
 
     config.check()
     torch.manual_seed(config.seed)
@@ -776,7 +776,7 @@ def write_ply(path: str | Path, means: np.ndarray, quats: np.ndarray, scales: np
               colors: np.ndarray, axes: str = DEFAULT_PLY_AXES) -> None:
     """Write the standard 3DGS binary little-endian PLY (degree-0 colour, zero normals and f_rest) from our
     world's arrays, in ``axes`` (:data:`PLY_AXES`; stated in a header comment). Units: our world's (metres)."""
-    from humanvdm_core.io import atomic_write_bytes
+    from humanvdm_core.workflow.atomic import atomic_write_bytes
 
     means, quats = to_axes(np.asarray(means, dtype=np.float64), np.asarray(quats, dtype=np.float64), axes)
     n = len(means)
@@ -855,7 +855,7 @@ def write_splat(path: str | Path, means: np.ndarray, quats: np.ndarray, scales: 
     viewers): 32 bytes a Gaussian, no header: position 3 x float32, linear scale 3 x float32, sRGB colour
     and opacity 4 x uint8, wxyz rotation 4 x uint8 (``q * 128 + 128``); largest, most opaque Gaussians
     first. Same ``axes`` as the PLY; about 7x smaller than it (no spherical harmonics)."""
-    from humanvdm_core.io import atomic_write_bytes
+    from humanvdm_core.workflow.atomic import atomic_write_bytes
 
     means, quats = to_axes(np.asarray(means, dtype=np.float64), np.asarray(quats, dtype=np.float64), axes)
     scales = np.asarray(scales, dtype=np.float64)
@@ -896,7 +896,7 @@ def turntable_cameras(cameras, views: int, size: int):
 def render_views_np(human: GaussianHuman, cameras, background: np.ndarray, chunk: int = 1,
                     tile_size: int = 16) -> np.ndarray:
     """(N, H, W, 3) float renders of the human from ``cameras``, in [0, 1]."""
-    from humanvdm_core.progress import report
+    from humanvdm_core.workflow.progress import report
 
     dev = human.anchors.device
     bg = torch.as_tensor(np.asarray(background, dtype=np.float32), device=dev)
@@ -913,7 +913,7 @@ def render_views_np(human: GaussianHuman, cameras, background: np.ndarray, chunk
 
 
 def write_train_log(path: str | Path, result: FitResult, extra: dict) -> None:
-    from humanvdm_core.io import atomic_write_text
+    from humanvdm_core.workflow.atomic import atomic_write_text
 
     # results only: the wall time is the lockfile's (an artifact holding timings would change on every
     # rerun and defeat the early cutoff of the stages after it)

@@ -25,7 +25,7 @@ All arithmetic is float64 whatever the input dtype (inputs are converted, output
 compiled specialisation serves float32 and float64. Kernels are compiled on first use and cached on disk
 (``cache=True``: numba's ``__pycache__`` beside this file, or ``NUMBA_CACHE_DIR``). Threads: each call runs
 on ``min(torch.get_num_threads(), NUMBA_NUM_THREADS)`` threads, so a process's thread budget
-(:mod:`humanvdm_core.threads`, ``torch.set_num_threads``) holds for the kernels too.
+(:mod:`humanvdm_core.workflow.threads`, ``torch.set_num_threads``) holds for the kernels too.
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from humanvdm_core.errors import InputError
+from humanvdm_core.workflow.errors import InputError
 
 KNN = 4
 CANDIDATES = 6  # random candidates per kept point, thinned by a Poisson-disk pass ...

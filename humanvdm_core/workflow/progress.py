@@ -3,7 +3,7 @@
 **The channel.** For every stage run it starts, the scheduler creates an empty file
 ``runs/<subject>/logs/<stage>.progress`` and passes its path to the stage process in the
 environment variable :data:`PROGRESS_ENV` (``HUMANVDM_PROGRESS``). A stage reports with
-``ctx.progress(done, total, unit, what)`` (:meth:`humanvdm_core.stage.StageContext.progress`), and
+``ctx.progress(done, total, unit, what)`` (:meth:`humanvdm_core.workflow.stage.StageContext.progress`), and
 library code that a stage calls with :func:`report` (the same call without a context); both append
 one JSON line to that file::
 

@@ -20,8 +20,8 @@ Contract (input and output are frame sets, see :mod:`humanvdm_core.frames`):
 
 Backends are functions chosen by name (:data:`BACKENDS`) with the signature
 ``(frame0, frame1, times, opts) -> list of frames``; ``rife`` (RIFE v4.6, local weights,
-:mod:`humanvdm_core.models.rife`) takes any t.  ``pervfi`` (PerVFI v00 + RAFT, local weights,
-:mod:`humanvdm_core.models.pervfi`) is a ×2 model -- its released weights are trained on triplets
+:mod:`humanvdm_core.interpolate.rife`) takes any t.  ``pervfi`` (PerVFI v00 + RAFT, local weights,
+:mod:`humanvdm_core.interpolate.pervfi`) is a ×2 model -- its released weights are trained on triplets
 (t = 0.5) -- so it always runs with the ``recursive`` schedule, as the paper applies it (21 -> 41 ->
 81): a ``direct`` schedule is overridden for it (:data:`RECURSIVE_ONLY`, :func:`effective_schedule`),
 logged, and the schedule that ran is what the frames' ``interpolate_schedule`` attribute records.
@@ -54,9 +54,9 @@ from pathlib import Path
 import numpy as np
 
 from humanvdm_core.cameras import Cameras, upsample_cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, open_frame_set
 from humanvdm_core.io import read_exr, write_exr
+from humanvdm_core.workflow.errors import InputError
 
 METHODS = ("flow", "crossfade")
 SCHEDULES = ("direct", "recursive")
@@ -72,8 +72,8 @@ class InterpolateOptions:
     flow_scale: float = 0.5
     preset: str = "fine"
     time_flow: str = "splat"
-    rife_weights: str = ""  # RIFE v4.6 flownet.pkl (backend "rife", humanvdm_core.models.rife)
-    pervfi_weights: str = ""  # PerVFI generator v00.pth (backend "pervfi", humanvdm_core.models.pervfi)
+    rife_weights: str = ""  # RIFE v4.6 flownet.pkl (backend "rife", humanvdm_core.interpolate.rife)
+    pervfi_weights: str = ""  # PerVFI generator v00.pth (backend "pervfi", humanvdm_core.interpolate.pervfi)
     pervfi_flow_weights: str = ""  # its RAFT flow estimator, raft-sintel.pth
 
     @property
@@ -265,20 +265,20 @@ def interpolate_embedded(frame0: np.ndarray, frame1: np.ndarray, times: Sequence
 InterpolateBackend = Callable[[np.ndarray, np.ndarray, Sequence[float], InterpolateOptions], list[np.ndarray]]
 def interpolate_rife(frame0: np.ndarray, frame1: np.ndarray, times: Sequence[float],
                      opts: InterpolateOptions) -> list[np.ndarray]:
-    """RIFE v4.6 from local weights (:mod:`humanvdm_core.models.rife`); any t (v4 takes t as input)."""
-    from humanvdm_core.models import rife
+    """RIFE v4.6 from local weights (:mod:`humanvdm_core.interpolate.rife`); any t (v4 takes t as input)."""
+    from humanvdm_core.interpolate import rife
 
     return rife.interpolate_pair(rife.load(opts.rife_weights), frame0, frame1, list(times))
 
 
 def interpolate_pervfi(frame0: np.ndarray, frame1: np.ndarray, times: Sequence[float],
                        opts: InterpolateOptions) -> list[np.ndarray]:
-    """PerVFI (v00 generator + RAFT) from local weights (:mod:`humanvdm_core.models.pervfi`).
+    """PerVFI (v00 generator + RAFT) from local weights (:mod:`humanvdm_core.interpolate.pervfi`).
 
     The network takes t, but its weights are trained at t = 0.5; :func:`interpolate_interval` only
     asks it for 0.5 (``recursive`` schedule).
     """
-    from humanvdm_core.models import pervfi
+    from humanvdm_core.interpolate import pervfi
 
     model = pervfi.load(opts.pervfi_weights, opts.pervfi_flow_weights)
     return [pervfi.interpolate_pair(model, frame0, frame1, time=t) for t in times]
@@ -359,7 +359,7 @@ def interpolate_frame_set(src: str | Path, dst: str | Path, opts: InterpolateOpt
         write_exr(dst / FRAMES_DIR / frame_name(index), frame,
                   attrs={**base, "frame_index": index, "keyframe": int(key), "time": float(t)})
 
-    from humanvdm_core.progress import report
+    from humanvdm_core.workflow.progress import report
 
     prev = read_exr(paths[0])
     put(0, prev, True, 0.0)

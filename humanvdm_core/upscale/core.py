@@ -21,7 +21,7 @@ composited over the background there).  Alpha is resampled with the same kernel,
 and clamped to [0, 1].  Downscaling (input larger than the target) uses area averaging and no
 sharpening.
 
-Model backends (local weights, nothing downloaded; :mod:`humanvdm_core.models.upscalers`):
+Model backends (local weights, nothing downloaded; :mod:`humanvdm_core.upscale.backends`):
 ``realesrgan`` (Real-ESRGAN RRDBNet on the whole frame, then resized to the target) and
 ``codeformer`` (CodeFormer on detected faces, fidelity w, pasted onto a Real-ESRGAN background).
 """
@@ -36,9 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from humanvdm_core.cameras import Cameras
-from humanvdm_core.errors import InputError
 from humanvdm_core.frames import CAMERAS_FILE, FRAMES_DIR, frame_name, open_frame_set
 from humanvdm_core.io import read_exr, write_exr
+from humanvdm_core.workflow.errors import InputError
 
 DEFAULT_TARGET_SIZE = 1080
 # Chosen by measurement (benchmarks/bench_interpolate.py, "upscale_576_to_1080": 576 renders upscaled
@@ -58,7 +58,7 @@ class UpscaleOptions:
     sharpen: float = DEFAULT_SHARPEN
     sharpen_sigma: float = DEFAULT_SHARPEN_SIGMA
     clamp: bool = True  # anti-halo clamp (off only to measure what it does)
-    # model backends (humanvdm_core.models.upscalers): local weight files and their settings
+    # model backends (humanvdm_core.upscale.backends): local weight files and their settings
     realesrgan_weights: str = ""  # Real-ESRGAN RRDBNet checkpoint (realesrgan; codeformer's background)
     codeformer_weights: str = ""  # CodeFormer checkpoint (codeformer)
     fidelity: float = 0.7  # CodeFormer's w: 0 = best quality, 1 = most faithful (paper: 0.7)
@@ -120,15 +120,15 @@ def upscale_embedded(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
 
 
 def upscale_realesrgan(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
-    """Real-ESRGAN (local RRDBNet weights), see :mod:`humanvdm_core.models.upscalers`."""
-    from humanvdm_core.models.upscalers import upscale_realesrgan as run
+    """Real-ESRGAN (local RRDBNet weights), see :mod:`humanvdm_core.upscale.backends`."""
+    from humanvdm_core.upscale.backends import upscale_realesrgan as run
 
     return run(frame, opts)
 
 
 def upscale_codeformer(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
-    """CodeFormer faces on a Real-ESRGAN background, see :mod:`humanvdm_core.models.upscalers`."""
-    from humanvdm_core.models.upscalers import upscale_codeformer as run
+    """CodeFormer faces on a Real-ESRGAN background, see :mod:`humanvdm_core.upscale.backends`."""
+    from humanvdm_core.upscale.backends import upscale_codeformer as run
 
     return run(frame, opts)
 
@@ -206,7 +206,7 @@ def upscale_frame_set(src: str | Path, dst: str | Path, opts: UpscaleOptions, ba
             log.info("frames already %dx%d: pass-through (copied %d files unchanged)", size, size, n)
         return {"passthrough": True, "frames": len(paths), "source_size": size, "target_size": size}
 
-    from humanvdm_core.progress import report
+    from humanvdm_core.workflow.progress import report
 
     fn = BACKENDS[backend]
     for i, p in enumerate(paths):

@@ -7,7 +7,7 @@ Every stage is a module ``stages/<name>.py`` that defines ``SPEC`` (a :class:`St
 
 - inputs are artifact directories (read-only); outputs are directories the stage creates and fills;
 - params are typed with defaults (``pipeline.yaml`` may override them, ``--set`` may override both);
-- exit 0 on success, 3 with a one-line message for a user-facing error (:mod:`humanvdm_core.errors`),
+- exit 0 on success, 3 with a one-line message for a user-facing error (:mod:`humanvdm_core.workflow.errors`),
   4 when the disk (or quota) is full (an ``OSError`` ENOSPC/EDQUOT, or an error carrying its text:
   the scheduler turns it into "no space left on device writing STORE; free N MB and rerun"),
   2 for a bad command line, 1 for a bug (with traceback);
@@ -20,11 +20,11 @@ validate the pipeline before anything runs. Heavy imports go inside ``run``.
 
 Progress: a stage reports how far it is with ``ctx.progress(done, total, unit, what)`` (e.g.
 ``ctx.progress(120, 500, "it", "optimise Gaussians")``; library code it calls uses
-:func:`humanvdm_core.progress.report`, the same call). The scheduler passes a file path in
+:func:`humanvdm_core.workflow.progress.report`, the same call). The scheduler passes a file path in
 ``$HUMANVDM_PROGRESS``; each report appends one JSON line ``{"t", "done", "total", "unit", "what"}``
 to it (throttled to a few per second), which the scheduler reads to show every active run's phase,
 count, rate and ETA. Without the variable a report does nothing. The format is in
-:mod:`humanvdm_core.progress`. The log (stdout/stderr) is for people and is never parsed for progress.
+:mod:`humanvdm_core.workflow.progress`. The log (stdout/stderr) is for people and is never parsed for progress.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from humanvdm_core.errors import ConfigError, HumanVDMError, is_disk_full
+from humanvdm_core.workflow.errors import ConfigError, HumanVDMError, is_disk_full
 
 EXIT_OK, EXIT_BUG, EXIT_USAGE, EXIT_USER_ERROR, EXIT_NO_SPACE = 0, 1, 2, 3, 4
 PARENT_PID_ENV = "HUMANVDM_PARENT_PID"  # set by the executor: the pid of the process that started the stage
@@ -217,7 +217,7 @@ class StageContext:
 
     def progress(self, done: float, total: float | None = None, unit: str = "it", what: str = "") -> None:
         """Report progress: ``done`` of ``total`` ``unit`` in the phase ``what`` (see the module docstring)."""
-        from humanvdm_core.progress import report
+        from humanvdm_core.workflow.progress import report
 
         report(done, total, unit, what)
 

@@ -9,7 +9,7 @@ Layout under the store root (default ``artifacts/``)::
     tmp/                       staging: <label>-pid<PID>.<host>.<random>/ per writer (see below)
     quarantine/                corrupt objects moved aside by ``verify`` (nothing is deleted silently)
     locks/                     file locks
-    hashes.db                  the stat cache (see :mod:`humanvdm_core.hashing`)
+    hashes.db                  the stat cache (see :mod:`humanvdm_core.workflow.hashing`)
 
 Contracts:
 - An object directory appears under its final name only complete (staged in tmp/, then renamed), so
@@ -21,7 +21,7 @@ Contracts:
   hashed; anything else re-reads the file. So a file changed through the file system (even with
   its size and mtime put back) is never a cache hit, nor is damage in a file's first or last
   64 KiB; damage beneath the file system to the middle of a larger file is found only by
-  ``verify``, which re-reads every byte and quarantines what fails. Details: :mod:`humanvdm_core.hashing`.
+  ``verify``, which re-reads every byte and quarantines what fails. Details: :mod:`humanvdm_core.workflow.hashing`.
 - Processes on one machine sharing a store coordinate with file locks: one per stage-run key (the
   second process waits, then finds the first one's result) and a store lock that ``gc`` takes
   exclusively. Across machines (a store on NFS, the Ray executor) nothing relies on these locks:
@@ -29,7 +29,7 @@ Contracts:
 - Staging folders are named for their writer (``pid<PID>.<host>``): a run removes the ones of
   dead processes of its own host when it starts (:meth:`clean_stale_staging`), so a killed run's
   partial outputs go at the next run; ``gc`` removes every leftover.
-- A full disk (ENOSPC/EDQUOT) while committing raises :class:`~humanvdm_core.errors.DiskFullError`
+- A full disk (ENOSPC/EDQUOT) while committing raises :class:`~humanvdm_core.workflow.errors.DiskFullError`
   (one line: where, and how much to free) and leaves nothing half-written: the staged files are
   removed and no record is written.
 """
@@ -52,9 +52,9 @@ from pathlib import Path
 
 from filelock import FileLock
 
-from humanvdm_core.errors import DiskFullError, HumanVDMError, is_disk_full
-from humanvdm_core.hashing import StatCache, hash_tree, list_files, tree_id
-from humanvdm_core.io import atomic_write_text
+from humanvdm_core.workflow.atomic import atomic_write_text
+from humanvdm_core.workflow.errors import DiskFullError, HumanVDMError, is_disk_full
+from humanvdm_core.workflow.hashing import StatCache, hash_tree, list_files, tree_id
 
 
 class StoreInUseError(HumanVDMError, RuntimeError):

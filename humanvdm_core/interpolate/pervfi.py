@@ -7,7 +7,7 @@ github.com/mulns/PerVFI; code and models under the Apache License 2.0):
 - ``PerVFI/v00.pth``: the generator the official ``raft+pervfi`` model uses (``src/test``:
   ``build_generator_arch("v00")`` -> ``PFlowVFI_V0.Network(dilate_size=9)``), a flat state dict
   (``module.`` prefixes stripped as the official loader does);
-- ``RAFT/raft-sintel.pth``: its optical-flow estimator (:mod:`humanvdm_core.models.raft`; RAFT is
+- ``RAFT/raft-sintel.pth``: its optical-flow estimator (:mod:`humanvdm_core.interpolate.raft`; RAFT is
   BSD-3-Clause, github.com/princeton-vl/RAFT).
 
 Generator key layout (reference: ``src/test/models/generators/PFlowVFI_V0.py``,
@@ -59,7 +59,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from humanvdm_core.models import raft
+from humanvdm_core.interpolate import raft
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
     build_strict,

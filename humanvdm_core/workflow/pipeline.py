@@ -56,8 +56,8 @@ from typing import Any
 
 import yaml
 
-from humanvdm_core.errors import ConfigError
-from humanvdm_core.stage import StageSpec
+from humanvdm_core.workflow.errors import ConfigError
+from humanvdm_core.workflow.stage import StageSpec
 
 _STAGE_KEYS = {"module", "inputs", "outputs", "params", "backend", "help", "resources"}
 _MEMORY_UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
@@ -217,7 +217,7 @@ def load_spec(module: str) -> StageSpec | None:
     mod = importlib.import_module(module)
     spec = getattr(mod, "SPEC", None)
     if not isinstance(spec, StageSpec):
-        raise ConfigError(f"module {module} has no SPEC (a humanvdm_core.stage.StageSpec)")
+        raise ConfigError(f"module {module} has no SPEC (a humanvdm_core.workflow.stage.StageSpec)")
     return spec
 
 
@@ -354,9 +354,13 @@ def _topological(pipe: Pipeline) -> list[str]:
 
 # ---------------------------------------------------------------------- code fingerprints
 
-def code_fingerprint(module: str, package_roots: tuple[str, ...] = ("humanvdm_core", "stages")) -> str:
+PROJECT_PACKAGE = __name__.partition(".")[0]  # the package this engine ships in: its modules are project code
+
+
+def code_fingerprint(module: str, package_roots: tuple[str, ...] = (PROJECT_PACKAGE,)) -> str:
     """Hash of a stage module's source and of every project module it imports, transitively
-    (modules of ``package_roots`` and of the stage's own top-level package).
+    (modules of ``package_roots``, by default the package the engine ships in, and of the stage's
+    own top-level package, e.g. ``stages``).
 
     Imports inside functions count (stages import heavy modules lazily). Third-party code is not
     part of the fingerprint; its versions are recorded in the lockfile instead.

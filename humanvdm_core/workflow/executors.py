@@ -1,15 +1,15 @@
 """Where stage runs execute: on this machine (``local``) or as tasks on a Ray cluster (``ray``).
 
 Both executors run the same command, ``python -m <stage module> --<input> DIR ... --out-<output>
-DIR ...`` (the contract of :mod:`humanvdm_core.stage`), with the same environment additions, into
+DIR ...`` (the contract of :mod:`humanvdm_core.workflow.stage`), with the same environment additions, into
 a staging folder the driver made in the store. Everything else stays on the driver (the
-:class:`~humanvdm_core.scheduler.Scheduler`): stage-run keys and cache lookups before anything is
+:class:`~humanvdm_core.workflow.scheduler.Scheduler`): stage-run keys and cache lookups before anything is
 submitted, committing outputs, run records and lockfiles. So outputs are byte-identical whichever
 executor ran a stage, cached stage runs never reach a cluster, and the store has one committer.
 
 - :class:`LocalExecutor`: a subprocess of the driver; ``--jobs`` bound how many run at once.
 - :class:`RayExecutor`: each stage run is one Ray task asking for the stage's resources
-  (``num_cpus``/``num_gpus``/``memory`` from pipeline.yaml, see :mod:`humanvdm_core.pipeline`); its
+  (``num_cpus``/``num_gpus``/``memory`` from pipeline.yaml, see :mod:`humanvdm_core.workflow.pipeline`); its
   body runs the same subprocess on whichever node Ray picks (:func:`run_stage_process`, with that
   node's Python: the project and its environment must be at the same paths on every node, the store
   on a file system every node sees). ``ray`` is imported only by this executor.
@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from humanvdm_core.errors import ConfigError, HumanVDMError
-from humanvdm_core.pipeline import Resources
-from humanvdm_core.stage import PARENT_PID_ENV
+from humanvdm_core.workflow.errors import ConfigError, HumanVDMError
+from humanvdm_core.workflow.pipeline import Resources
+from humanvdm_core.workflow.stage import PARENT_PID_ENV
 
 EXECUTORS = ("local", "ray")
 RAY_MAX_RETRIES = 3
@@ -83,7 +83,7 @@ def run_stage_process(command: StageCommand, on_start: Callable[[subprocess.Pope
     Output folders left by an earlier attempt are removed first; the log is appended to (an earlier
     attempt's lines stay, after a note). ``on_start``/``on_end`` see the process (to stop it on Ctrl-C).
     """
-    from humanvdm_core.store import discard
+    from humanvdm_core.workflow.store import discard
 
     for out in command.outputs:
         discard(Path(out))

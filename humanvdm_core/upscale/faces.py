@@ -41,7 +41,7 @@ def detect_faces(rgb: np.ndarray, min_score: float = 0.5, min_size: float = 8.0)
     try:
         from mediapipe.python.solutions import face_detection
     except ImportError as e:
-        from humanvdm_core.errors import HumanVDMError
+        from humanvdm_core.workflow.errors import HumanVDMError
 
         raise HumanVDMError(f"the codeformer backend detects faces with MediaPipe, which does not import ({e}); "
                             "`make setup` installs it (mediapipe==0.10.21, --no-deps)") from None

@@ -12,22 +12,22 @@ artifact *ids*, so when an upstream rerun reproduces the same bytes the downstre
 (early cutoff).
 
 Independent stage runs (other subjects, parallel branches) go to a bounded pool (``jobs``) and
-run on an executor (:mod:`humanvdm_core.executors`: subprocesses here, or Ray tasks on a cluster);
+run on an executor (:mod:`humanvdm_core.workflow.executors`: subprocesses here, or Ray tasks on a cluster);
 keys, cache lookups and commits always happen here, in the driver. A failure skips only what
 depends on it. Per subject, ``runs/<subject>/humanvdm.lock`` records every stage's key, params,
 input and output ids, backend, wall time, peak memory and versions, and
 ``runs/<subject>/<stage>/<output>`` links to the artifacts.
 
 Faults: a run first removes staging folders of dead runs on this host; a stage process dies with
-the process that started it (see :mod:`humanvdm_core.stage`); a full disk, in the stage or while
+the process that started it (see :mod:`humanvdm_core.workflow.stage`); a full disk, in the stage or while
 committing, fails that stage run with one line ("no space left on device writing STORE; free N MB
 and rerun", N: the larger of what the stage had written when the disk filled and what the same
 stage's outputs took earlier in this run) and leaves no staging folder and no record; messages
 name the user's input file, never the store's copy of it.
 
 While it runs, each stage process reports its own progress through ``runs/<subject>/logs/<stage>.progress``
-(the channel of :mod:`humanvdm_core.progress`, named in ``$HUMANVDM_PROGRESS``); a
-:class:`~humanvdm_core.progress.Display` shows it, per active stage run.
+(the channel of :mod:`humanvdm_core.workflow.progress`, named in ``$HUMANVDM_PROGRESS``); a
+:class:`~humanvdm_core.workflow.progress.Display` shows it, per active stage run.
 """
 
 from __future__ import annotations
@@ -49,15 +49,15 @@ from typing import Any
 
 import yaml
 
-from humanvdm_core.errors import ConfigError, DiskFullError, HumanVDMError, is_disk_full
-from humanvdm_core.executors import LocalExecutor, RayExecutor, StageCommand
-from humanvdm_core.hashing import hash_tree
-from humanvdm_core.io import atomic_write_text
-from humanvdm_core.pipeline import Pipeline, Ref, Resources, code_fingerprint
-from humanvdm_core.progress import PROGRESS_ENV, Display
-from humanvdm_core.stage import EXIT_NO_SPACE
-from humanvdm_core.store import Store, discard, tree_size
-from humanvdm_core.threads import stage_threads, thread_env
+from humanvdm_core.workflow.atomic import atomic_write_text
+from humanvdm_core.workflow.errors import ConfigError, DiskFullError, HumanVDMError, is_disk_full
+from humanvdm_core.workflow.executors import LocalExecutor, RayExecutor, StageCommand
+from humanvdm_core.workflow.hashing import hash_tree
+from humanvdm_core.workflow.pipeline import Pipeline, Ref, Resources, code_fingerprint
+from humanvdm_core.workflow.progress import PROGRESS_ENV, Display
+from humanvdm_core.workflow.stage import EXIT_NO_SPACE
+from humanvdm_core.workflow.store import Store, discard, tree_size
+from humanvdm_core.workflow.threads import stage_threads, thread_env
 
 LOCK_NAME = "humanvdm.lock"
 _YamlLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when the wheel has it
@@ -141,7 +141,7 @@ class Scheduler:
         self.until = until
         self.jobs = max(1, int(jobs))
         self.threads = threads  # compute threads per stage process; None: available cores / jobs
-        # what the run shows (humanvdm_core.progress.Display): "auto" (None), "live" (True), "plain" (False), "quiet"
+        # what the run shows (humanvdm_core.workflow.progress.Display): "auto" (None), "live" (True), "plain" (False), "quiet"
         self.progress = {None: "auto", True: "live", False: "plain"}.get(progress, progress)
         self.progress_interval = progress_interval
         for stage in self.overrides:
@@ -479,7 +479,7 @@ class Scheduler:
         log_dir.mkdir(parents=True, exist_ok=True)
         run.log = log_dir / f"{run.stage}.log"
         run.log.write_bytes(b"")  # the executor appends: one log per stage run, every attempt in it
-        progress_file = log_dir / f"{run.stage}.progress"  # the stage's progress channel (humanvdm_core.progress)
+        progress_file = log_dir / f"{run.stage}.progress"  # the stage's progress channel (humanvdm_core.workflow.progress)
         progress_file.write_bytes(b"")
         resources = self.resources(run.stage)
         command = StageCommand(label=run.label, argv=["-m", sd.module, *argv], cwd=str(self.pipeline.path.parent),
@@ -623,7 +623,7 @@ def _error_line(log: Path) -> str | None:
 
 
 def _warning_lines(log: Path | None) -> list[str]:
-    """The stage's ``warning: ...`` log lines (see :mod:`humanvdm_core.stage`), without their prefix."""
+    """The stage's ``warning: ...`` log lines (see :mod:`humanvdm_core.workflow.stage`), without their prefix."""
     try:
         lines = log.read_text(errors="replace").splitlines() if log else []
     except OSError:

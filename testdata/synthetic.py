@@ -96,9 +96,10 @@ import torch
 from humanvdm_core.body.anny_model import AnnyBody
 from humanvdm_core.body.model import COCO17_NAMES, BodyParams
 from humanvdm_core.body.uvmap import UVPositionMap
-from humanvdm_core.errors import ConfigError
-from humanvdm_core.io import atomic_write_text, write_npz, write_png
+from humanvdm_core.io import write_npz, write_png
 from humanvdm_core.scans import DEFAULT_SUBJECT_HEIGHT, TexturedMesh, normalization_transform
+from humanvdm_core.workflow.atomic import atomic_write_text
+from humanvdm_core.workflow.errors import ConfigError
 
 TRUTH_SCHEMA = "humanvdm.synthetic_truth"
 TRUTH_VERSION = 1

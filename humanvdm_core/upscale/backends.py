@@ -1,15 +1,15 @@
-"""The model backends of :mod:`humanvdm_core.upscale`: ``realesrgan`` and ``codeformer``.
+"""The model backends of :mod:`humanvdm_core.upscale.core`: ``realesrgan`` and ``codeformer``.
 
 Both map one RGBA frame (H, W, 4) float32 to (target, target, 4) float32, like every upscale
 backend:
 
 - ``realesrgan``: the RGB goes through Real-ESRGAN's RRDBNet (×4 or ×2, from the checkpoint;
-  tiled, see :func:`humanvdm_core.models.rrdbnet.upscale_rgb`), then is resized to the target
+  tiled, see :func:`humanvdm_core.upscale.rrdbnet.upscale_rgb`), then is resized to the target
   (area averaging when the model overshoots, e.g. 576 -> 2304 -> 1080; Lanczos without sharpening
   when it falls short).  Alpha is resampled with the embedded backend's kernel and never goes
   through the model.
 - ``codeformer``: as CodeFormer's official inference with a Real-ESRGAN background: faces are
-  detected on the source frame (:mod:`humanvdm_core.models.faces`), aligned to the FFHQ template
+  detected on the source frame (:mod:`humanvdm_core.upscale.faces`), aligned to the FFHQ template
   at CodeFormer's crop size (512² for the official model), restored with fidelity ``w``
   (paper: 0.7) and pasted back with a feathered mask onto the Real-ESRGAN-upscaled frame, which
   is then resized to the target.  A frame without a detectable face (the back of an orbit) gets
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from humanvdm_core.upscale import UpscaleOptions, resample_color
+from humanvdm_core.upscale.core import UpscaleOptions, resample_color
 
 TILE_PAD = 24  # context pixels around each Real-ESRGAN tile
 
@@ -46,7 +46,7 @@ def _finish(rgb_up: np.ndarray, frame: np.ndarray, opts: UpscaleOptions) -> np.n
 
 def upscale_realesrgan(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
     """Real-ESRGAN on the whole frame's RGB, then resized to the target; alpha resampled."""
-    from humanvdm_core.models import rrdbnet
+    from humanvdm_core.upscale import rrdbnet
 
     net = rrdbnet.load(opts.realesrgan_weights)
     return _finish(rrdbnet.upscale_rgb(net, frame[..., :3], opts.tile, TILE_PAD), frame, opts)
@@ -55,7 +55,7 @@ def upscale_realesrgan(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
 def restore_faces(rgb: np.ndarray, background: np.ndarray, scale: float,
                   opts: UpscaleOptions) -> tuple[np.ndarray, int]:
     """CodeFormer on every face of ``rgb`` (source frame), pasted into ``background`` (``scale`` x larger)."""
-    from humanvdm_core.models import codeformer, faces
+    from humanvdm_core.upscale import codeformer, faces
 
     net = codeformer.load(opts.codeformer_weights)
     found = faces.detect_faces(rgb)[:opts.max_faces]
@@ -69,7 +69,7 @@ def restore_faces(rgb: np.ndarray, background: np.ndarray, scale: float,
 
 def upscale_codeformer(frame: np.ndarray, opts: UpscaleOptions) -> np.ndarray:
     """Real-ESRGAN background + CodeFormer faces, then resized to the target; alpha resampled."""
-    from humanvdm_core.models import codeformer, rrdbnet
+    from humanvdm_core.upscale import codeformer, rrdbnet
 
     codeformer.load(opts.codeformer_weights)  # both files are checked before any work
     bg_net = rrdbnet.load(opts.realesrgan_weights)
