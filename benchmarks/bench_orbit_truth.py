@@ -35,7 +35,7 @@ AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
 
 
 def specs() -> dict:
-    from humanvdm_core.synthetic import GARMENT_EXAMPLES, SubjectSpec
+    from testdata.synthetic import GARMENT_EXAMPLES, SubjectSpec
 
     out = {}
     pipeline = RESULTS / "pipeline.json"
@@ -55,7 +55,7 @@ def main() -> None:
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from humanvdm_core.synthetic import make_subject
+    from testdata.synthetic import make_subject
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--subjects", nargs="*", default=None)
