@@ -128,7 +128,7 @@ def full_mode() -> Mode:
     ]
     return Mode("full", photo_size=768, eval_size=512, base_sets=[f"splat-optimize.preset={preset}"], scans=None,
                 ablations=["full", "no_interpolate", "no_upscale", "body_template", "subject_template",
-                           "no_pose_refinement", "sv3d_finetuned"],
+                           "pose_refinement", "sv3d_finetuned"],
                 cases=tuple(c.name for c in stability.CASES), speed=speed)
 
 
@@ -328,7 +328,7 @@ def ablation_variants(ctx: Context) -> dict[str, tuple[list[str], str]]:
         "no_upscale": ([f"upscale.target_size={res}"], f"without upscale: frames stay {res} px (pass-through)"),
         "body_template": (["splat-optimize.template=body"], "body template (one Gaussian per UV texel, the paper)"),
         "subject_template": (["splat-optimize.template=subject"], "subject template (clothed proxy / visual hull)"),
-        "no_pose_refinement": (["splat-optimize.refine_pose=false"], "without pose refinement"),
+        "pose_refinement": (["splat-optimize.refine_pose=true"], "with pose refinement (the paper's; off by default)"),
     }
     if sv3d_weights().is_file() and finetuned_weights().is_file():
         variants["sv3d_stock"] = (["diffuse.backend=sv3d_p"], "SV3D_p, stock weights")
