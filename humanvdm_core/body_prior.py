@@ -56,7 +56,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from humanvdm_core.cameras import Cameras, orbit_cameras
+from humanvdm_core.cameras import Cameras, orbit_cameras, project_points, sample_bilinear
 from humanvdm_core.clothed_proxy import ClothedProxy, nearest_fill
 from humanvdm_core.scans import TexturedMesh, framing_radius
 
@@ -169,30 +169,12 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
 
 # ----------------------------------------------------------------------------- colouring helpers
 
-def _project(points: np.ndarray, camera: Cameras) -> tuple[np.ndarray, np.ndarray]:
-    """World points (V, 3) into camera 0 of ``camera``: pixel coordinates (V, 2) and camera z (V,)."""
-    w2c, K = camera.w2c[0], camera.K[0]
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    px = cam[:, :2] / np.maximum(z, 1e-6)[:, None] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
-    return px, z
-
-
 def _lookup(image: np.ndarray, px: np.ndarray) -> np.ndarray:
     """Nearest-pixel values of ``image`` (H, W[, C]) at pixel coordinates ``px`` (V, 2), clamped inside."""
     h, w = image.shape[:2]
     col = np.clip(np.floor(px[:, 0]).astype(np.int64), 0, w - 1)
     row = np.clip(np.floor(px[:, 1]).astype(np.int64), 0, h - 1)
     return image[row, col]
-
-
-def _bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Bilinear samples (V, C) of ``image`` (H, W, C) at pixel coordinates (pixel centres at +0.5)."""
-    mx = (px[:, 0] - 0.5).astype(np.float32).reshape(-1, 1)
-    my = (px[:, 1] - 0.5).astype(np.float32).reshape(-1, 1)
-    out = cv2.remap(np.ascontiguousarray(image, dtype=np.float32), mx, my, interpolation=cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(len(px), -1)
 
 
 def fill_from_nearest(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -252,11 +234,11 @@ def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image:
     faces = np.asarray(faces, np.int64)
     depth = render_views(TexturedMesh(v.astype(np.float32), faces), camera, (0.0, 0.0, 0.0), samples=1).depth[0]
     depth = np.where(depth > 0, depth, np.inf)
-    px, z = _project(v, camera)
+    px, z = project_points(v, camera.w2c[0], camera.K[0])
     visible = z <= _lookup(depth, px) + DEPTH_TOLERANCE
 
     filled = fill_from_nearest(image, mask)
-    front = _bilinear(filled, px)
+    front = sample_bilinear(filled, px)
 
     # the front point at the same world (x, y): z_front by two fixed-point steps on the rendered depth
     c2w, K_inv = camera.c2w[0], np.linalg.inv(camera.K[0])
@@ -264,14 +246,14 @@ def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image:
     mirror_px = px
     for _ in range(2):
         q = np.stack([v[:, 0], v[:, 1], z_front], axis=1)
-        q_px, _ = _project(q, camera)
+        q_px, _ = project_points(q, camera.w2c[0], camera.K[0])
         d = _lookup(depth, q_px)
         hit = np.isfinite(d)
         rays = np.concatenate([q_px, np.ones((len(q_px), 1))], axis=1) @ K_inv.T
         surface = (rays * np.where(hit, d, 0.0)[:, None]) @ c2w[:3, :3].T + c2w[:3, 3]
         z_front = np.where(hit, np.maximum(surface[:, 2], v[:, 2]), z_front)
         mirror_px = np.where(hit[:, None], q_px, mirror_px)
-    back = _bilinear(filled, mirror_px)
+    back = sample_bilinear(filled, mirror_px)
 
     if head_weight is not None and np.any(head_weight > 0.5):
         hair = hair_colour(image, mask, px[head_weight > 0.5])
@@ -361,7 +343,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
 
         hair = None
         if head_weight is not None and np.any(head_weight > 0.5) and not facing.away:
-            px, _ = _project(vertices[head_weight > 0.5], front_cam)
+            px, _ = project_points(vertices[head_weight > 0.5], front_cam.w2c[0], front_cam.K[0])
             hair = hair_colour(view.rgba[..., :3], view.mask, px)
         clothed = build_clothed_proxy(vertices, faces, weights, list(model.joint_names), front_cam,
                                       view.rgba[..., :3], view.mask, head_colour=hair)

@@ -8,6 +8,9 @@ Camera axes are OpenCV's: x right, y down, z forward. ``c2w`` maps camera to wor
 ``w2c`` is its inverse. ``K`` is the pixel intrinsic matrix with the principal point at the image
 centre (pixel centres at integer + 0.5, as gsplat and OpenCV use).
 
+:func:`project_points` and :func:`sample_bilinear` are the projection and the image lookup that
+follow that pixel convention.
+
 The SV3D_p orbit has 21 frames at ``linspace(0, 360, 22)[1:] % 360``: the last frame (azimuth 0)
 is the input view.
 """
@@ -215,3 +218,24 @@ def upsample_cameras(cams: Cameras, factor: int) -> Cameras:
     azs.append(cams.azimuth_deg[last]), els.append(cams.elevation_deg[last]), rs.append(cams.radius[last])
     return Cameras(np.stack(Ks), np.stack(c2ws), cams.width, cams.height, np.array(azs), np.array(els),
                    np.array(rs), dict(cams.extra))
+
+
+def project_points(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points (P, 3) in one camera (``w2c`` 4x4, ``K`` 3x3): pixel coordinates (P, 2) and camera
+    depths (P,) (points behind the camera divide by 1e-6)."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    px = cam[:, :2] / np.maximum(z, 1e-6)[:, None] * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    return px, z
+
+
+def sample_bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Bilinear samples (P, C) of ``image`` (H, W, C) at pixel coordinates ``px`` (P, 2), pixel centres at
+    +0.5, the border replicated outside."""
+    import cv2
+
+    mx = (px[:, 0] - 0.5).astype(np.float32).reshape(-1, 1)
+    my = (px[:, 1] - 0.5).astype(np.float32).reshape(-1, 1)
+    out = cv2.remap(np.ascontiguousarray(image, dtype=np.float32), mx, my, interpolation=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(len(px), -1)

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from humanvdm_core.cameras import project_points, sample_bilinear
 from humanvdm_core.workflow.errors import InputError
 
 KNN = 4
@@ -149,14 +150,6 @@ def proxy_points(path: str | Path, spacing: float, seed: int = 0) -> np.ndarray:
     return candidates[poisson_disk(candidates, DISK * spacing)]
 
 
-def _project(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (P, 2) and camera depths (P,) of world points in one camera."""
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    uv = cam[:, :2] / np.maximum(z, 1e-6)[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-    return uv, z
-
-
 def visual_hull_points(views, body_vertices: np.ndarray, spacing: float, seed: int = 0,
                        resolution: int = HULL_RESOLUTION) -> np.ndarray:
     """Surface points of the training views' visual hull, merged with the body's concavities (see the
@@ -173,7 +166,7 @@ def visual_hull_points(views, body_vertices: np.ndarray, spacing: float, seed: i
     alphas = views.alphas.cpu().numpy()
     w2c, K, S = views.w2c.cpu().numpy().astype(np.float64), views.K.cpu().numpy().astype(np.float64), views.size
     for i in range(len(alphas)):
-        uv, z = _project(centres, w2c[i], K[i])
+        uv, z = project_points(centres, w2c[i], K[i])
         px = np.floor(uv).astype(np.int64)
         inside = (px[:, 0] >= 0) & (px[:, 0] < S) & (px[:, 1] >= 0) & (px[:, 1] < S) & (z > 0)
         empty = np.ones(len(centres), bool)  # the frames show the whole person: outside a frame is empty
@@ -239,7 +232,7 @@ def visibility(points: np.ndarray, w2c: np.ndarray, K: np.ndarray, size: int,
     """For one camera: which points are visible (P,) bool (in the image and within
     :data:`VISIBLE_TOLERANCE` of the nearest point in their z-buffer cell, ``zbuffer_size`` cells across)
     and their pixels (P, 2)."""
-    uv, z = _project(points, w2c, K)
+    uv, z = project_points(points, w2c, K)
     scale = zbuffer_size / size
     cell = np.floor(uv * scale).astype(np.int64)
     inside = (cell[:, 0] >= 0) & (cell[:, 0] < zbuffer_size) & (cell[:, 1] >= 0) & (cell[:, 1] < zbuffer_size) & (z > 0)
@@ -249,18 +242,6 @@ def visibility(points: np.ndarray, w2c: np.ndarray, K: np.ndarray, size: int,
     visible = np.zeros(len(points), bool)
     visible[inside] = z[inside] <= zbuf[flat[inside]] + VISIBLE_TOLERANCE
     return visible, uv
-
-
-def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """``image`` (H, W, C) sampled at pixel coordinates ``uv`` (P, 2) (pixel centres at +0.5), clamped."""
-    h, w = image.shape[:2]
-    x = np.clip(uv[:, 0] - 0.5, 0, w - 1)
-    y = np.clip(uv[:, 1] - 0.5, 0, h - 1)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((image[y0, x0] * (1 - fx) + image[y0, x1] * fx) * (1 - fy)
-            + (image[y1, x0] * (1 - fx) + image[y1, x1] * fx) * fy)
 
 
 def project_colors(points: np.ndarray, views) -> tuple[np.ndarray, np.ndarray]:
@@ -275,9 +256,9 @@ def project_colors(points: np.ndarray, views) -> tuple[np.ndarray, np.ndarray]:
     zsize = zbuffer_size(len(points), float(alphas.mean()), views.size)
     for i in range(len(images)):
         vis, uv = visibility(points, w2c[i], K[i], views.size, zsize)
-        a = _bilinear(alphas[i][..., None], uv[vis])[:, 0]
+        a = sample_bilinear(alphas[i][..., None], uv[vis])[:, 0]
         w = np.where(a > 0.5, a, 0.0)
-        total[vis] += w[:, None] * _bilinear(images[i], uv[vis])
+        total[vis] += w[:, None] * sample_bilinear(images[i], uv[vis])
         weight[vis] += w
         seen[vis] += w > 0
     colors = total / np.maximum(weight, 1e-8)[:, None]
