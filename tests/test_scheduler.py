@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import time
+
 import pytest
 import yaml
 
@@ -131,6 +134,24 @@ def test_parallel_jobs_overlap(toy):
     toy.scheduler(jobs=2, overrides={"shout": {"sleep": 1.0}}).run(subjects)
     (_, _, a0, a1), (_, _, b0, b1) = [r for r in toy.ledger() if r[0] == "shout"]
     assert a0 < b1 and b0 < a1, "the two shout runs should have overlapped in time"
+
+
+def test_a_downstream_run_starts_only_once_its_upstream_outputs_are_known(toy, monkeypatch):
+    """In parallel, one subject's upstream run finishing wakes the loop while another's is still
+    committing; the loop must not mistake the half-finished run for done (CI saw KeyError: 'out')."""
+    key_lock = Scheduler._key_lock
+
+    @contextlib.contextmanager
+    def slow_exit(self, key):
+        with key_lock(self, key):
+            yield
+        time.sleep(0.3)  # a slow machine between committing a run and publishing its outputs
+
+    monkeypatch.setattr(Scheduler, "_key_lock", slow_exit)
+    subjects = [toy.subject("a", "hello world"), toy.subject("b", "x" * 25)]
+    s = toy.scheduler(jobs=2).run(subjects)
+    assert s.ok, [(r.label, r.state, r.reason) for r in s.runs if r.state != RAN]
+    assert {r.state for r in s.runs} == {RAN}
 
 
 def test_lockfile_records_provenance(toy):

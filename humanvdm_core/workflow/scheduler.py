@@ -402,9 +402,12 @@ class Scheduler:
         display.finished(id(run), run.label, run.state, f"{run.label}: {run.state}{timing}{extra}{log}")
 
     def _run_one(self, run: StageRun) -> None:
+        """Runs in a pool thread. ``run.state`` becomes RAN or CACHED last of all: the scheduling loop
+        submits downstream runs as soon as it sees that state, and they read ``run.outputs``."""
         self._resolve_inputs(run)
         sd = self.pipeline.stages[run.stage]
         forced = run.stage in self.force
+        state = CACHED
         record = None if forced else self.store.get_record(run.key)
         if record is None:
             with self._key_lock(run.key):
@@ -413,14 +416,15 @@ class Scheduler:
                     record = self._execute_stage(run)
                     if record is None:
                         return
-                    run.state = RAN
-        if run.state != RAN:
-            run.state, run.reason = CACHED, ""
+                    state = RAN
+        if state == CACHED:
+            run.reason = ""
         run.outputs = dict(record["outputs"])
         run.wall_s = record.get("wall_s")
         run.peak_rss_mb = record.get("peak_rss_mb")
         run.warnings = list(record.get("warnings") or [])
-        self._update_view(run, sd.backend, record)
+        self._update_view(run, sd.backend, record, state)
+        run.state = state
 
     @contextlib.contextmanager
     def _key_lock(self, key: str) -> Iterator[None]:
@@ -527,7 +531,7 @@ class Scheduler:
         with self._lock:
             return max(staged, self._output_bytes.get(run.stage, 0))
 
-    def _update_view(self, run: StageRun, backend: str, record: dict) -> None:
+    def _update_view(self, run: StageRun, backend: str, record: dict, state: str) -> None:
         view = self.store.root / "runs" / run.subject.name
         for name, artifact_id in run.outputs.items():
             link = view / run.stage / name
@@ -542,7 +546,7 @@ class Scheduler:
         entry = {k: record.get(k) for k in ("key", "module", "code", "params", "backend", "weights", "inputs",
                                             "outputs", "wall_s", "peak_rss_mb", "warnings", "versions")}
         entry["warnings"] = [user_names(run, w) for w in entry["warnings"] or []]  # this subject's file names
-        entry["status"] = run.state
+        entry["status"] = state
         with self._lock:
             lock = self._lockfiles.get(run.subject.name)
             if lock is None:
@@ -552,7 +556,7 @@ class Scheduler:
                                                               "id": run.subject.input_id}
             lock.setdefault("stages", {})[run.stage] = entry
             self._dirty.add(run.subject.name)
-            if run.state == RAN:  # new work is on record at once; cache hits are written at the end
+            if state == RAN:  # new work is on record at once; cache hits are written at the end
                 self._flush_lockfiles()
 
     def _flush_lockfiles(self) -> None:
