@@ -409,3 +409,17 @@ def test_real_pipeline_asks_a_gpu_only_for_gpu_settings():
                                                           "splat-optimize": {"preset": "full"}})
     assert gpu.resources("diffuse").num_gpus == 1 and gpu.resources("splat-optimize").num_gpus == 1
     assert gpu.resources("upscale").num_gpus == 0
+
+
+def test_a_stage_process_started_while_stopping_is_stopped_at_once(tmp_path):
+    """Ctrl-C can land between a stage's staging folder appearing and its process starting: once
+    ``stop_all`` has begun, a process that starts is terminated, not waited for."""
+    from humanvdm_core.workflow.executors import LocalExecutor, StageCommand
+
+    executor = LocalExecutor()
+    executor.stop_all()
+    command = StageCommand(label="a/slow", argv=["-c", "import time; time.sleep(30)"], cwd=str(tmp_path), env={},
+                           log=str(tmp_path / "slow.log"), outputs=[])
+    t0 = time.perf_counter()
+    result = executor.run(command)
+    assert result.returncode != 0 and time.perf_counter() - t0 < 10

@@ -118,6 +118,7 @@ class LocalExecutor:
     def __init__(self) -> None:
         self._procs: set[subprocess.Popen] = set()
         self._lock = threading.Lock()
+        self._stopping = False
 
     def run(self, command: StageCommand) -> StageResult:
         return run_stage_process(command, self._started, self._ended)
@@ -125,14 +126,18 @@ class LocalExecutor:
     def _started(self, proc: subprocess.Popen) -> None:
         with self._lock:
             self._procs.add(proc)
+            if self._stopping:  # started while Ctrl-C was being handled: it must not run on
+                proc.terminate()
 
     def _ended(self, proc: subprocess.Popen) -> None:
         with self._lock:
             self._procs.discard(proc)
 
     def stop_all(self) -> None:
-        """Terminate every running stage process (Ctrl-C), then kill what does not stop in 10 s."""
+        """Terminate every running stage process (Ctrl-C), and any that starts from now on, then kill
+        what does not stop in 10 s."""
         with self._lock:
+            self._stopping = True
             procs = list(self._procs)
         for p in procs:
             p.terminate()
