@@ -112,7 +112,10 @@ def test_killed_run_leaves_nothing_complete_and_rerun_recovers(toy):
 
 def test_ctrl_c_stops_the_stage_and_exits_130(toy):
     inp = write_input(toy, "a", "slow text")
-    p = cli(toy, "run", inp, "--kind", "text", "--set", "shout.sleep=30", "--no-progress", background=True)
+    # as from a terminal: a shell without job control starts background jobs (a test run with `&`)
+    # with SIGINT ignored, and Python then installs no KeyboardInterrupt handler
+    p = cli(toy, "run", inp, "--kind", "text", "--set", "shout.sleep=30", "--no-progress", background=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     _wait_for_staging(toy)
     p.send_signal(signal.SIGINT)
     out, _ = p.communicate(timeout=30)
