@@ -271,6 +271,25 @@ def test_two_people_warn_or_refuse(ryota, offline):
 
 
 @needs_mediapipe
+def test_a_person_in_a_wide_panorama_is_found_and_said_so(ryota, offline):
+    """5:1: MediaPipe shrinks the whole frame and finds nobody; the square windows find the person."""
+    h, w = ryota.height, ryota.width
+    wide = np.full((h, 5 * w, 3), 0.85, np.float32)
+    x0 = int(3.6 * w)  # off-centre, across two windows' overlap
+    wide[:, x0:x0 + w] = ryota.rgb
+    det = detect_person(_photo(wide, "panorama.png"))
+    alone = detect_person(ryota)
+    np.testing.assert_allclose(det.keypoints, alone.keypoints + [x0, 0], atol=0.02 * h)
+    fg, ref = det.mask > 0.5, np.zeros_like(det.mask, bool)
+    ref[:, x0:x0 + w] = alone.mask > 0.5
+    assert (fg & ref).sum() / (fg | ref).sum() > 0.9
+    assert det.bbox[0] >= x0 - 1 and det.bbox[2] <= x0 + w + 1
+    assert any("fills little of the wide photo panorama.png" in m for m in det.warnings)
+    with pytest.raises(InputError, match=r"no person found in empty_panorama\.png"):
+        detect_person(_photo(np.full((h, 5 * w, 3), 0.85, np.float32), "empty_panorama.png"))
+
+
+@needs_mediapipe
 def test_body_cut_off(ryota, offline):
     with pytest.raises(InputError, match=r"left hip, right hip outside the photo \(cut off by the frame\)"):
         detect_person(_photo(ryota.rgb[:230], "waist.png"))  # cropped just above the waist

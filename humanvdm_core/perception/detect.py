@@ -41,6 +41,11 @@ Contract of :func:`detect_person`:
     why (outside the frame / not visible); other missing joints are listed in a warning and in
     ``Detection.missing``, and detection goes on.
   * Notes from loading (e.g. a downscaled huge photo) are copied into ``warnings``.
+- A wide (or tall) photo, more than :data:`WIDE_ASPECT` : 1, in which MediaPipe finds nobody (its
+  detector sees the whole frame shrunk, so a person in a panorama is too small): the search goes on
+  in square windows of the photo's short side, half overlapping; the first window where a pose is
+  found, widened to the person's silhouette, is detected as a photo of its own and the result
+  mapped back to the whole photo, with a warning that says so.
 - Runs offline: only MediaPipe's bundled ``pose_landmark_full.tflite`` (``model_complexity=1``),
   ``pose_detection.tflite`` and ``selfie_segmentation.tflite`` are used; nothing is downloaded.
 """
@@ -69,6 +74,12 @@ ALPHA_MAX_TRANSPARENT = 0.99  # .. to this fraction of the pixels is transparent
 MIN_PERSON_AREA = 0.002  # a silhouette smaller than this fraction of the image is not a person
 OTHER_PERSON_AREA = 0.2  # another silhouette counts if at least this fraction of the largest one
 _TORSO = (11, 12, 23, 24)  # BlazePose shoulders and hips
+WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
+WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
+
+
+class _NoPerson(InputError):
+    """MediaPipe found nobody in the photo (the whole of it)."""
 _INSTALL = ("pip install --no-deps mediapipe==0.10.21 && pip install absl-py attrs flatbuffers "
             "'protobuf>=4.25.3,<5' matplotlib")
 
@@ -180,25 +191,89 @@ def _describe(names: list[str]) -> str:
     return ", ".join(n.replace("_", " ") for n in names)
 
 
-def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -> Detection:
-    """Find the person in ``photo``: mask, COCO-17 keypoints, bbox, warnings (module docstring)."""
-    if not isinstance(photo, Photo):
-        photo = load_photo(photo)
-    mp_pose, mp_selfie = _mediapipe()
+def _work_copy(photo: Photo) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """MediaPipe's copy of ``photo``: at most :data:`WORK_SIDE` px, uint8 RGB, an RGBA photo composited
+    over mid-gray; its alpha at that size (or None) and whether the alpha is a real cut-out (the mask)."""
     H, W = photo.height, photo.width
-    warnings = list(photo.notes)
-
-    # MediaPipe's copy: at most WORK_SIDE px, an RGBA photo composited over mid-gray.
     s = min(1.0, WORK_SIDE / max(H, W))
     wh, ww = max(1, round(H * s)), max(1, round(W * s))
     work = cv2.resize(photo.rgb, (ww, wh), interpolation=cv2.INTER_AREA) if s < 1 else photo.rgb
-    alpha_ok = False  # the alpha is a real cut-out: it is the mask
+    alpha_ok, alpha_work = False, None
     if photo.alpha is not None:
         transparent = float(np.mean(photo.alpha < 0.5))
         alpha_ok = ALPHA_MIN_TRANSPARENT <= transparent <= ALPHA_MAX_TRANSPARENT
         alpha_work = cv2.resize(photo.alpha, (ww, wh), interpolation=cv2.INTER_AREA) if s < 1 else photo.alpha
         work = work * alpha_work[:, :, None] + 0.5 * (1.0 - alpha_work[:, :, None])
-    work = np.ascontiguousarray(np.clip(np.rint(work * 255.0), 0, 255).astype(np.uint8))
+    return np.ascontiguousarray(np.clip(np.rint(work * 255.0), 0, 255).astype(np.uint8)), alpha_work, alpha_ok
+
+
+def _crop(photo: Photo, box: tuple[int, int, int, int]) -> Photo:
+    """``photo``'s pixels in ``box`` (x0, y0, x1, y1) as a photo of its own (same file name and scale)."""
+    x0, y0, x1, y1 = box
+    alpha = None if photo.alpha is None else photo.alpha[y0:y1, x0:x1]
+    size = (max(1, round((x1 - x0) / photo.scale)), max(1, round((y1 - y0) / photo.scale)))
+    return Photo(photo.rgb[y0:y1, x0:x1], alpha, photo.path, size, list(photo.notes))
+
+
+def _person_window(photo: Photo) -> tuple[int, int, int, int] | None:
+    """For a wide or tall photo: the box (photo pixels) around the person of the first square window,
+    along the long side, half overlapping, in which a pose is found; None when there is none."""
+    H, W = photo.height, photo.width
+    work, _, _ = _work_copy(photo)
+    wh, ww = work.shape[:2]
+    side = min(wh, ww)
+    span = max(wh, ww)
+    starts = sorted({*range(0, span - side + 1, max(1, side // 2)), span - side})
+    mp_pose, _ = _mediapipe()
+    with mp_pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True,
+                      min_detection_confidence=0.5) as pose_model:
+        for start in starts:
+            x0, y0 = (start, 0) if ww >= wh else (0, start)
+            found = _run_pose(pose_model, np.ascontiguousarray(work[y0:y0 + side, x0:x0 + side]))
+            if found is None or not found.torso_visible():
+                continue
+            ys, xs = np.nonzero(found.segmentation > 0.5)
+            if xs.size == 0:
+                continue
+            pad = WINDOW_MARGIN * max(np.ptp(xs), np.ptp(ys))
+            box = np.array([x0 + xs.min() - pad, y0 + ys.min() - pad, x0 + xs.max() + 1 + pad,
+                            y0 + ys.max() + 1 + pad])
+            box = box * np.array([W / ww, H / wh, W / ww, H / wh])
+            return (max(0, int(box[0])), max(0, int(box[1])), min(W, int(np.ceil(box[2]))),
+                    min(H, int(np.ceil(box[3]))))
+    return None
+
+
+def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -> Detection:
+    """Find the person in ``photo``: mask, COCO-17 keypoints, bbox, warnings (module docstring)."""
+    if not isinstance(photo, Photo):
+        photo = load_photo(photo)
+    try:
+        return _detect(photo, refuse_multiple)
+    except _NoPerson:
+        if max(photo.height, photo.width) < WIDE_ASPECT * min(photo.height, photo.width):
+            raise
+        box = _person_window(photo)
+        if box is None:
+            raise
+    x0, y0, x1, y1 = box
+    det = _detect(_crop(photo, box), refuse_multiple)
+    mask = np.zeros((photo.height, photo.width), np.float32)
+    mask[y0:y1, x0:x1] = det.mask
+    bx0, by0, bx1, by1 = det.bbox
+    det.mask, det.bbox = mask, (bx0 + x0, by0 + y0, bx1 + x0, by1 + y0)
+    det.keypoints = (det.keypoints + np.array([x0, y0], np.float32)).astype(np.float32)
+    det.warnings.append(f"the person fills little of the wide photo {photo.name}; found in the part "
+                        f"x {x0}-{x1}, y {y0}-{y1} px (people elsewhere in it are not counted)")
+    return det
+
+
+def _detect(photo: Photo, refuse_multiple: bool) -> Detection:
+    mp_pose, mp_selfie = _mediapipe()
+    H, W = photo.height, photo.width
+    warnings = list(photo.notes)
+    work, alpha_work, alpha_ok = _work_copy(photo)
+    wh, ww = work.shape[:2]
 
     no_person = InputError(f"no person found in {photo.name}: use a photo showing one person, "
                            "standing, from the hips up at least (a full-body photo works best)")
@@ -207,7 +282,7 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -
             mp_selfie.SelfieSegmentation(model_selection=0) as selfie_model:
         first = _run_pose(pose_model, work)
         if first is None:
-            raise no_person
+            raise _NoPerson(str(no_person))
         # Everyone's silhouette, to count people: the alpha, or selfie segmentation plus the pose's mask.
         if alpha_ok:
             everyone = alpha_work > 0.5
