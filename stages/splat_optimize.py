@@ -17,8 +17,9 @@ Colours start in closed form (``init_colors``: the frames projected onto the Gau
 test and averaged; Gaussians no frame sees are dropped), so the first step already shows the person.
 Then: a per-Gaussian feature + MLP decoder for offsets / colour residuals / scales, learned opacities
 (``learn_opacity``), LBS posing (``refine_pose``: the paper's joint pose refinement, off by default), 0.8 L1 + 0.2 (1 - SSIM) (+ 0.2 LPIPS with
-``lpips_weights``) + 10 offset² + 1 scale² + 1 feature², Adam lr 3e-3, 2 views a batch, the first steps
-at half resolution, and (``densify``) pruning and splitting at the preset's steps, so the count
+``lpips_weights``) + 10 offset² + 1 scale² + 1 feature², Adam lr 3e-3, 2 views a batch (a quarter of the
+batches hold the input photo's view, ``input_view_share``: the photo is the one view not generated), the
+first steps at half resolution, and (``densify``) pruning and splitting at the preset's steps, so the count
 follows the subject; the counts go to ``train_log.json``.
 
 Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``subject_spacing`` / ``uv_resolution`` /
@@ -85,6 +86,9 @@ SPEC = StageSpec(
         "refine_pose": Param(False, "jointly refine the body pose and translation (the paper's; off by default: on the "
                                     "protocol scans it cost 0.2-0.8 dB, the Gaussians already sit on the subject's surface)"),
         "lr": Param(3e-3, "Adam learning rate (features, decoder)"),
+        "input_view_share": Param(0.25, "share of the training batches that hold the input photo's view (the "
+                                        "orbit's frame at azimuth 0, the one view that is not generated); "
+                                        "0: uniform, as the paper"),
         "pose_lr": Param(3e-4, "Adam learning rate of the pose/translation refinement"),
         "batch_views": Param(2, "training views per step"),
         "l1_weight": Param(0.8, "weight of the L1 term"),
@@ -170,7 +174,8 @@ def run(ctx: StageContext) -> None:
         feature_weight=p["feature_weight"], mask_weight=p["mask_weight"], seed=p["seed"],
         tile_size=s["tile_size"], log_every=max(1, s["iterations"] // 50), coarse_fraction=s["coarse_fraction"],
         densify_at=tuple(s["densify_at"]) if p["densify"] else (), max_gaussians=s["max_gaussians"],
-        split_residual=p["split_residual"])
+        split_residual=p["split_residual"],
+        input_view=H.input_view_index(cameras.azimuth_deg), input_view_share=p["input_view_share"])
     result = H.fit_gaussians(human, views, config, log=ctx.log.info)  # progress in the stage log
     ctx.log.info("trained in %.1f s: loss %.4f -> %.4f, training PSNR %.2f dB", result.wall_s,
                  result.losses[0] if result.losses else float("nan"),

@@ -22,7 +22,7 @@ Model (:class:`GaussianHuman`):
   rotated by its blended bone rotation and scaled by the body's scale.
 
 Fitting (:func:`fit_gaussians`): Adam (lr 3e-3) on batches of ``batch_views`` training views in a
-seeded, fixed order; loss ``0.8 L1 + 0.2 (1 - SSIM) [+ 0.2 LPIPS] + 10 |offset|^2 + 1 |scale|^2 +
+seeded, fixed order (``input_view_share`` of the batches hold ``input_view``, the photo's own view); loss ``0.8 L1 + 0.2 (1 - SSIM) [+ 0.2 LPIPS] + 10 |offset|^2 + 1 |scale|^2 +
 1 |feature|^2`` (means over Gaussians / feature entries; offsets and scales in world units),
 renders composited over the frame set's background colour. Coarse to fine: the first
 ``coarse_fraction`` of the steps train on half-resolution views. At each ``densify_at`` share of the
@@ -535,6 +535,8 @@ class FitConfig:
     split_residual: float = 0.1  # mean |render - frame| (colour + alpha) above which a Gaussian is split
     max_gaussians: int = 0  # cap on the count after splitting (0: none)
     densify_views: int = 8  # evenly spaced views whose residuals decide the splits
+    input_view: int = -1  # index of the input photo's view among the training views (-1: none)
+    input_view_share: float = 0.0  # share of the batches that hold the input view (0: uniform, as the paper)
 
     def check(self) -> None:
         if self.iterations < 0:
@@ -547,6 +549,8 @@ class FitConfig:
             raise ConfigError(f"batch_views must be >= 1, got {self.batch_views}")
         if self.lr <= 0 or self.pose_lr < 0:
             raise ConfigError("lr must be > 0 and pose_lr >= 0")
+        if not 0.0 <= self.input_view_share <= 1.0:
+            raise ConfigError(f"input_view_share must be in [0, 1], got {self.input_view_share}")
 
 
 @dataclass
@@ -559,14 +563,31 @@ class FitResult:
     counts: list[dict] = field(default_factory=list)  # per densify step: iteration, pruned, split, count
 
 
-def view_order(n_views: int, iterations: int, batch: int, seed: int) -> list[list[int]]:
-    """Per-iteration view batches: seeded permutations of all views, consumed ``batch`` at a time."""
+def view_order(n_views: int, iterations: int, batch: int, seed: int, input_view: int = -1,
+               input_view_share: float = 0.0) -> list[list[int]]:
+    """Per-iteration view batches: seeded permutations of all views, consumed ``batch`` at a time. With
+    ``input_view`` >= 0, an evenly spread ``input_view_share`` of the batches start with that view
+    (the photo itself: the one view that is not generated)."""
     gen = torch.Generator().manual_seed(int(seed) + 1)
     order: list[int] = []
     need = iterations * batch
     while len(order) < need:
         order += torch.randperm(n_views, generator=gen).tolist()
-    return [order[i * batch:(i + 1) * batch] for i in range(iterations)]
+    batches = [order[i * batch:(i + 1) * batch] for i in range(iterations)]
+    if 0 <= input_view < n_views and input_view_share > 0:
+        for i, b in enumerate(batches):
+            if math.floor((i + 1) * input_view_share) > math.floor(i * input_view_share) and input_view not in b:
+                b[0] = input_view
+    return batches
+
+
+def input_view_index(azimuth_deg: np.ndarray, tolerance_deg: float = 1.0) -> int:
+    """The training view of the input photo: the orbit's frame at azimuth 0 (DESIGN.md: its last), or
+    -1 when no frame lies within ``tolerance_deg`` of it."""
+    az = np.asarray(azimuth_deg, dtype=np.float64) % 360.0
+    off = np.minimum(az, 360.0 - az)
+    i = int(np.argmin(off)) if len(off) else -1
+    return i if i >= 0 and off[i] <= tolerance_deg else -1
 
 
 def training_loss(human: GaussianHuman, views: TrainingViews, ids: torch.Tensor, config: FitConfig,
@@ -675,7 +696,7 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
     opt = make_optimizer(human, config)
     result = FitResult(config=asdict(config))
     batches = view_order(len(views.images), config.iterations, min(config.batch_views, len(views.images)),
-                         config.seed)
+                         config.seed, config.input_view, config.input_view_share)
     t0 = time.perf_counter()
     S, ts = views.size, config.tile_size
     for it, idx in enumerate(batches):
