@@ -271,6 +271,32 @@ def test_two_people_warn_or_refuse(ryota, offline):
 
 
 @needs_mediapipe
+def test_a_held_object_outside_the_outline_joins_the_mask_on_a_plain_background(ryota, offline):
+    alone = detect_person(ryota)
+    x, y = alone.keypoints[IDX["right_wrist"]]  # on the image's left
+    h = ryota.height
+    box = (slice(int(y), int(y + 0.15 * h)), slice(int(x - 0.12 * h), int(x)))  # hanging from the hand
+    rgb = ryota.rgb.copy()
+    rgb[box] = (0.95, 0.5, 0.1)
+    det = detect_person(_photo(rgb, "box.png"))
+    held = np.zeros(det.mask.shape, bool)
+    held[box] = True
+    outside = held & (alone.mask < 0.5)
+    assert outside.sum() > 0.02 * (alone.mask > 0.5).sum()  # the case is what we meant
+    assert (det.mask[outside] > 0.5).mean() > 0.95
+    assert ((det.mask > 0.5) & ~held & (alone.mask < 0.5)).sum() < 0.05 * outside.sum()  # little else
+    assert any("box.png: something the person holds" in w for w in det.warnings)
+    # on a busy background the object cannot be told from it: the mask is MediaPipe's alone
+    noisy = rgb.copy()
+    backdrop = alone.mask < 0.1
+    backdrop[box] = False
+    noisy[backdrop] = _pattern(*rgb.shape[:2])[backdrop] / 255.0
+    busy = detect_person(_photo(noisy, "busy.png"))
+    assert (busy.mask[outside] > 0.5).mean() < 0.2
+    assert not any("holds" in w for w in busy.warnings)
+
+
+@needs_mediapipe
 def test_a_person_in_a_wide_panorama_is_found_and_said_so(ryota, offline):
     """5:1: MediaPipe shrinks the whole frame and finds nobody; the square windows find the person."""
     h, w = ryota.height, ryota.width

@@ -41,6 +41,14 @@ Contract of :func:`detect_person`:
     why (outside the frame / not visible); other missing joints are listed in a warning and in
     ``Detection.missing``, and detection goes on.
   * Notes from loading (e.g. a downscaled huge photo) are copied into ``warnings``.
+- Held objects (a bag, a box, a binder held away from the body): MediaPipe's person segmentation
+  leaves them out. On a plain background (:func:`plain_background`: the photo's border within
+  :data:`BACKGROUND_DISTANCE` of its median colour, at least :data:`PLAIN_SHARE` of it), whatever
+  differs from that colour, lies outside the person's mask, touches it, reaches within
+  :data:`HAND_REACH` of the person's height of a detected wrist and covers at least
+  :data:`HELD_MIN_AREA` of the mask is added to the mask, with a warning
+  (:func:`held_objects`). Not with an alpha cut-out (the user's mask is the mask) nor on a busy
+  background (the object cannot be told from it).
 - A wide (or tall) photo, more than :data:`WIDE_ASPECT` : 1, in which MediaPipe finds nobody (its
   detector sees the whole frame shrunk, so a person in a panorama is too small): the search goes on
   in square windows of the photo's short side, half overlapping; the first window where a pose is
@@ -74,6 +82,11 @@ ALPHA_MAX_TRANSPARENT = 0.99  # .. to this fraction of the pixels is transparent
 MIN_PERSON_AREA = 0.002  # a silhouette smaller than this fraction of the image is not a person
 OTHER_PERSON_AREA = 0.2  # another silhouette counts if at least this fraction of the largest one
 _TORSO = (11, 12, 23, 24)  # BlazePose shoulders and hips
+BORDER = 0.02  # the photo's border band (share of the short side) that shows the background
+BACKGROUND_DISTANCE = 0.12  # RGB distance within which a pixel has the background's colour
+PLAIN_SHARE = 0.9  # the background is plain when at least this share of the border has its colour
+HAND_REACH = 0.08  # a held object comes this close to a wrist (share of the person's height)
+HELD_MIN_AREA = 0.02  # a held object covers at least this share of the person's mask (else: an edge fringe)
 WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
 
@@ -189,6 +202,45 @@ def _refine(mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
 
 def _describe(names: list[str]) -> str:
     return ", ".join(n.replace("_", " ") for n in names)
+
+
+def plain_background(rgb: np.ndarray) -> np.ndarray | None:
+    """The background colour (3,) of a photo whose border is (nearly) one colour, else None."""
+    h, w = rgb.shape[:2]
+    b = max(1, int(round(BORDER * min(h, w))))
+    border = np.concatenate([rgb[:b].reshape(-1, 3), rgb[-b:].reshape(-1, 3),
+                             rgb[:, :b].reshape(-1, 3), rgb[:, -b:].reshape(-1, 3)])
+    colour = np.median(border, axis=0)
+    near = np.linalg.norm(border - colour, axis=1) < BACKGROUND_DISTANCE
+    return colour.astype(np.float32) if near.mean() >= PLAIN_SHARE else None
+
+
+def held_objects(rgb: np.ndarray, mask: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarray:
+    """(H, W) bool: what the person holds outside their mask (module docstring); empty when the
+    background is not plain or no wrist is detected."""
+    none = np.zeros(mask.shape, bool)
+    colour = plain_background(rgb)
+    person = mask > 0.5
+    wrists = [keypoints[i] for i in (9, 10) if confidences[i] >= MIN_CONFIDENCE]
+    if colour is None or not wrists or not person.any():
+        return none
+    ys = np.nonzero(person.any(axis=1))[0]
+    reach = HAND_REACH * float(ys.max() - ys.min() + 1)
+    differs = np.linalg.norm(rgb - colour, axis=2) >= BACKGROUND_DISTANCE
+    differs = cv2.morphologyEx(differs.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+    candidates = differs & ~person
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(candidates.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return none
+    big = np.nonzero(stats[:, cv2.CC_STAT_AREA] >= HELD_MIN_AREA * person.sum())[0]
+    touching = np.unique(labels[_dilate(person, 0.004) & candidates])
+    yy, xx = np.mgrid[0:mask.shape[0], 0:mask.shape[1]]
+    near_hand = np.zeros(mask.shape, bool)
+    for x, y in wrists:
+        near_hand |= (xx - x) ** 2 + (yy - y) ** 2 <= reach ** 2
+    by_hand = np.unique(labels[near_hand & candidates])
+    keep = np.intersect1d(np.intersect1d(touching[touching > 0], by_hand[by_hand > 0]), big[big > 0])
+    return np.isin(labels, keep) if keep.size else none
 
 
 def _work_copy(photo: Photo) -> tuple[np.ndarray, np.ndarray | None, bool]:
@@ -343,16 +395,23 @@ def _detect(photo: Photo, refuse_multiple: bool) -> Detection:
         keep = cv2.resize(_dilate(chosen_region, 0.01).astype(np.uint8), (W, H),
                           interpolation=cv2.INTER_NEAREST) > 0
         mask = np.where(keep, mask, 0.0).astype(np.float32)
-    ys, xs = np.nonzero(mask > 0.5)
-    if xs.size < MIN_PERSON_AREA * H * W:
-        raise no_person
-    bbox = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
-
     # Keypoints in photo pixels; joints outside the frame get confidence 0.
     lm = person.landmarks[list(BLAZEPOSE_TO_COCO17)]
     keypoints = (lm[:, :2] / np.array([ww / W, wh / H], np.float32)).astype(np.float32)
     inside = (keypoints[:, 0] >= 0) & (keypoints[:, 0] < W) & (keypoints[:, 1] >= 0) & (keypoints[:, 1] < H)
     confidences = np.where(inside, lm[:, 2], 0.0).astype(np.float32)
+    if not alpha_ok:
+        held = held_objects(photo.rgb, mask, keypoints, confidences)
+        if held.any():
+            mask = np.where(held, 1.0, mask).astype(np.float32)
+            warnings.append(f"{photo.name}: something the person holds lies outside their outline "
+                            f"({held.sum() / max(1.0, float((mask > 0.5).sum())):.0%} of it); kept as part of "
+                            "them, its depth guessed")
+
+    ys, xs = np.nonzero(mask > 0.5)
+    if xs.size < MIN_PERSON_AREA * H * W:
+        raise no_person
+    bbox = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
     world = person.world[list(BLAZEPOSE_TO_COCO17)].astype(np.float32)
     world = world if np.all(np.isfinite(world)) else None  # MediaPipe gave 2D landmarks only (not seen)
     outside = [n for n, ok in zip(COCO17_NAMES, inside, strict=True) if not ok]
