@@ -478,9 +478,13 @@ def view_values(scored: dict, view: str) -> dict:
     return {k: scored[k][i] if k in scored else "" for k in keys}
 
 
-def report_markdown(ctx: Context, parts: dict) -> str:
-    """Every table in one Markdown file."""
+def report_markdown(ctx: Context, parts: dict, earlier: dict[str, str] | None = None) -> str:
+    """Every table in one Markdown file; ``earlier`` names the parts this call did not run (their
+    tables come from the last call that did, on the date given)."""
     lines = [f"# Experiments ({ctx.mode.name} mode)", "", f"Store: `{ctx.store}`; stage runs: {ctx.tally.line()}.", ""]
+    if earlier:
+        lines += ["Not run by this call, from earlier calls: "
+                  + ", ".join(f"{p} ({d})" for p, d in earlier.items()) + ".", ""]
     if "protocol" in parts:
         p = parts["protocol"]
         lines += ["## Protocol (paper Table 1 form)", "",
@@ -620,8 +624,15 @@ def main(argv: list[str] | None = None) -> int:
         done[part] = result
         written.append(save(ctx, part, result, tally.as_dict(), command))
         say(f"   {part}: {tally.line()} -> {written[-1]}")
+    earlier = {}  # parts not run by this call: their tables from the last call that ran them
+    for part in PARTS:
+        saved = ctx.out(f"{part}.json")
+        if part not in done and saved.is_file():
+            doc = json.loads(saved.read_text())
+            earlier[part] = doc.get("date", "?")
+            done[part] = doc["result"]
     report = ctx.out("report.md")
-    report.write_text(report_markdown(ctx, done) + "\n")
+    report.write_text(report_markdown(ctx, {p: done[p] for p in PARTS if p in done}, earlier) + "\n")
     written.append(report)
     say(f"\ndone in {time.perf_counter() - t0:.0f} s; stage runs: {ctx.tally.line()}")
     say(f"results in {ctx.results}:")
