@@ -63,3 +63,10 @@ def test_quick_experiments_cached_and_failures_are_rows(tmp_path, fixtures_dir):
     assert again["stage_runs"]["ran"] == 0 and again["stage_runs"]["reused"] == 6
     assert again["result"]["table"]["body-prior"]["renderpeople_rp_mei_posed_001"]["gaussians"]["psnr"] == \
         mei["gaussians"]["psnr"]
+
+    # a call that runs one part keeps the other part's table in the report, marked as from earlier
+    third = experiments(tmp_path, "--only", "stability", "--cases", "tiny_100px")
+    assert third.returncode == 0, third.stdout + third.stderr
+    report = (results / "experiments_quick_report.md").read_text()
+    assert "## Protocol" in report and "| tiny_100px |" in report
+    assert "Not run by this call, from earlier calls: protocol" in report
