@@ -271,6 +271,7 @@ def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image:
 
 GEOMETRIES = ("clothed", "body")  # what the orbit is rendered from: the clothed proxy, or the naked body (ablation)
 LOOSE_FRACTION = 0.8  # the body covering less of the silhouette than this: clothing/hair/objects are guessed
+HIDDEN_CONFIDENCE = 0.5  # a keypoint below this confidence is hidden
 SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
 
 
@@ -279,11 +280,11 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
     (17, 3; world, Y up): hidden legs or hands, a seated pose."""
     out = []
     conf = view.confidences
-    hidden_legs = [n for n, i in (("knees", (13, 14)), ("ankles", (15, 16))) if min(conf[i[0]], conf[i[1]]) < 0.5]
+    hidden_legs = [n for n, i in (("knees", (13, 14)), ("ankles", (15, 16))) if min(conf[i[0]], conf[i[1]]) < HIDDEN_CONFIDENCE]
     if hidden_legs:
         out.append(f"{name}: the {' and '.join(hidden_legs)} are hidden (a long dress or coat, or out of view): "
                    "the legs' pose is guessed")
-    if min(conf[9], conf[10]) < 0.5:
+    if min(conf[9], conf[10]) < HIDDEN_CONFIDENCE:
         out.append(f"{name}: a hand is hidden (behind the body, in a pocket or out of view): its pose is guessed")
     thighs = coco17[[13, 14]] - coco17[[11, 12]]
     angle = np.degrees(np.arccos(np.clip(-thighs[:, 1] / np.maximum(np.linalg.norm(thighs, axis=1), 1e-9), -1, 1)))
@@ -346,7 +347,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
             px, _ = project_points(vertices[head_weight > 0.5], front_cam.w2c[0], front_cam.K[0])
             hair = hair_colour(view.rgba[..., :3], view.mask, px)
         clothed = build_clothed_proxy(vertices, faces, weights, list(model.joint_names), front_cam,
-                                      view.rgba[..., :3], view.mask, head_colour=hair)
+                                      view.rgba[..., :3], view.mask, head_colour=hair,
+                                      legs_hidden=bool(view.confidences[[15, 16]].max() < HIDDEN_CONFIDENCE))
         lg.info("clothed proxy: %d vertices, %d faces; the body covers %.0f%% of the silhouette",
                 len(clothed.mesh.vertices), len(clothed.mesh.faces), 100 * clothed.body_fraction)
         if clothed.body_fraction < LOOSE_FRACTION:

@@ -20,7 +20,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    and the body behind it.
 4. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
-   equation, body pixels fixed, free at the silhouette).
+   equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
+   ankle: a long dress or coat hides the legs, whose fitted depth is then a guess) the mid-depth of
+   loose neighbourhoods comes instead, by ``looseness`` (step 5), from the extension of the body
+   where it is not loose (the torso the garment hangs from), so a gown hangs centred, not along
+   guessed legs.
 5. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller), in world units at the local depth; :data:`INFLATION` makes it
@@ -374,13 +378,15 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
 
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
-                        head_colour: np.ndarray | None = None, grid: int = GRID) -> ClothedProxy:
+                        head_colour: np.ndarray | None = None, grid: int = GRID,
+                        legs_hidden: bool = False) -> ClothedProxy:
     """The clothed proxy of a person (see the module docstring).
 
     ``vertices`` (V, 3) / ``faces`` / ``skinning_weights`` (V, J) / ``joint_names``: the fitted body in
     the world; ``camera``: the input view (one camera, ``size`` x ``size``); ``rgb`` (size, size, 3) and
     ``mask`` (size, size): the input view's photo and person mask; ``head_colour``: the colour of the
-    unseen side of the head (hair), None to use the head's own median colour."""
+    unseen side of the head (hair), None to use the head's own median colour; ``legs_hidden``: the
+    photo does not show the ankles (a long dress or coat), so the fitted legs' depth is a guess."""
     size = camera.width
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
@@ -426,6 +432,11 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     loose = cv2.boxFilter((domain & ~body & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
     t_inflate = looseness * t_round
+    if legs_hidden:  # the garment hangs from where it fits, not from the guessed legs inside it
+        fitted = body & (looseness < 0.5)
+        if fitted.sum() >= 8:
+            hung = harmonic_extension(np.where(fitted, mid_body, 0.0), fitted, domain)
+            mid = looseness * hung + (1.0 - looseness) * mid
     border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))

@@ -94,6 +94,52 @@ def test_proxy_fills_a_wider_mask_and_is_closed():
 
 
 @pytest.mark.slow
+def test_a_gown_over_hidden_legs_hangs_centred_not_along_the_guessed_legs(tmp_path, monkeypatch):
+    """A synthetic floor-length gown seen from the front (the ankles hidden): from the side, the
+    proxy's hem is centred where the true hem is; letting it follow the fitted legs (their depth a
+    guess) puts it further off."""
+    pytest.importorskip("anny")
+    pytest.importorskip("mediapipe")
+    from humanvdm_core import body_prior
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+    from testdata.synthetic import GARMENT_EXAMPLES, make_subject
+
+    torch.set_num_threads(1)
+    mesh = normalize_scan(load_scan(make_subject(GARMENT_EXAMPLES["gown"], tmp_path / "g", texture_size=256)))
+    cams = orbit_cameras(2, 256, 33.8, 0.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([0.0, 90.0]))
+    truth = render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba
+    photo = tmp_path / "gown.png"
+    write_png(photo, truth[0, ..., :3])
+
+    def hem_offset(alpha: np.ndarray) -> float:
+        """The hem's centre from the side, relative to the torso's centre, in heights."""
+        m = alpha > 0.5
+        rows = np.nonzero(m.any(axis=1))[0]
+        top, height = rows.min(), rows.max() + 1 - rows.min()
+
+        def centre(frac: float) -> float:
+            cols = np.nonzero(m[int(top + frac * height)])[0]
+            return 0.5 * (cols.min() + cols.max())
+
+        return float(np.mean([centre(f) for f in (0.85, 0.9, 0.95)]) - centre(0.35)) / height
+
+    true_off = hem_offset(truth[1, ..., 3])
+    got = {}
+    for hidden in (True, False):
+        if not hidden:  # every keypoint counts as seen: the gown follows the fitted legs
+            monkeypatch.setattr(body_prior, "HIDDEN_CONFIDENCE", 0.0)
+        proxy = body_prior.build_body_proxy(photo, size=256, iterations=60, elevation_deg=0.0)
+        got[hidden] = hem_offset(proxy.render(cams.subset([1]))[0, ..., 3])
+    print("hem offset / height: truth", round(true_off, 3), "hung", round(got[True], 3), "following the legs",
+          round(got[False], 3))
+    assert abs(got[True] - true_off) < abs(got[False] - true_off)
+    assert abs(got[True] - true_off) < 0.05  # measured: truth -0.012, hung 0.023, following the legs 0.093
+
+
+@pytest.mark.slow
 def test_skirt_width_from_the_side(tmp_path):
     """A synthetic subject in a knee-length skirt, seen from the front: from the side (azimuth 90) the
     clothed orbit's silhouette is as wide as the true skirt at the skirt's height; the naked body
