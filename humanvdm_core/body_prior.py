@@ -275,6 +275,12 @@ HIDDEN_CONFIDENCE = 0.5  # a keypoint below this confidence is hidden
 SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
 
 
+def _ankles_hidden(confidences: np.ndarray) -> bool:
+    """Both ankles inside the photo but not seen (a long dress or coat); a cut-off ankle has confidence 0."""
+    c = confidences[[15, 16]]
+    return bool(np.all((c > 0) & (c < HIDDEN_CONFIDENCE)))
+
+
 def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
     """What the photo cannot tell the stand-in, from the detections and the fitted body's COCO joints
     (17, 3; world, Y up): hidden legs or hands, a seated pose."""
@@ -348,7 +354,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
             hair = hair_colour(view.rgba[..., :3], view.mask, px)
         clothed = build_clothed_proxy(vertices, faces, weights, list(model.joint_names), front_cam,
                                       view.rgba[..., :3], view.mask, head_colour=hair,
-                                      legs_hidden=bool(view.confidences[[15, 16]].max() < HIDDEN_CONFIDENCE))
+                                      legs_hidden=_ankles_hidden(view.confidences))
         lg.info("clothed proxy: %d vertices, %d faces; the body covers %.0f%% of the silhouette",
                 len(clothed.mesh.vertices), len(clothed.mesh.faces), 100 * clothed.body_fraction)
         if clothed.body_fraction < LOOSE_FRACTION:
