@@ -58,6 +58,7 @@ import numpy as np
 
 from humanvdm_core.cameras import Cameras, orbit_cameras, project_points, sample_bilinear
 from humanvdm_core.clothed_proxy import ClothedProxy, nearest_fill
+from humanvdm_core.perception.detect import MIN_CONFIDENCE
 from humanvdm_core.scans import TexturedMesh, framing_radius
 
 log = logging.getLogger("humanvdm.body_prior")
@@ -271,7 +272,7 @@ def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image:
 
 GEOMETRIES = ("clothed", "body")  # what the orbit is rendered from: the clothed proxy, or the naked body (ablation)
 LOOSE_FRACTION = 0.8  # the body covering less of the silhouette than this: clothing/hair/objects are guessed
-HIDDEN_CONFIDENCE = 0.5  # a keypoint below this confidence is hidden
+HIDDEN_CONFIDENCE = MIN_CONFIDENCE  # a keypoint less sure than the detector's "confident" is hidden
 SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
 
 

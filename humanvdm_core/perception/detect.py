@@ -90,11 +90,12 @@ HELD_MIN_AREA = 0.02  # a held object covers at least this share of the person's
 WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
 
+_INSTALL = ("pip install --no-deps mediapipe==0.10.21 && pip install absl-py attrs flatbuffers "
+            "'protobuf>=4.25.3,<5' matplotlib")
+
 
 class _NoPerson(InputError):
     """MediaPipe found nobody in the photo (the whole of it)."""
-_INSTALL = ("pip install --no-deps mediapipe==0.10.21 && pip install absl-py attrs flatbuffers "
-            "'protobuf>=4.25.3,<5' matplotlib")
 
 
 @dataclass
@@ -234,11 +235,10 @@ def held_objects(rgb: np.ndarray, mask: np.ndarray, keypoints: np.ndarray, confi
         return none
     big = np.nonzero(stats[:, cv2.CC_STAT_AREA] >= HELD_MIN_AREA * person.sum())[0]
     touching = np.unique(labels[_dilate(person, 0.004) & candidates])
-    yy, xx = np.mgrid[0:mask.shape[0], 0:mask.shape[1]]
-    near_hand = np.zeros(mask.shape, bool)
+    near_hand = np.zeros(mask.shape, np.uint8)
     for x, y in wrists:
-        near_hand |= (xx - x) ** 2 + (yy - y) ** 2 <= reach ** 2
-    by_hand = np.unique(labels[near_hand & candidates])
+        cv2.circle(near_hand, (int(round(float(x))), int(round(float(y)))), int(round(reach)), 1, thickness=-1)
+    by_hand = np.unique(labels[(near_hand > 0) & candidates])
     keep = np.intersect1d(np.intersect1d(touching[touching > 0], by_hand[by_hand > 0]), big[big > 0])
     return np.isin(labels, keep) if keep.size else none
 
