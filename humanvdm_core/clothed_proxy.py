@@ -27,13 +27,17 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    guessed legs.
 5. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
-   column of the mask, the smaller), in world units at the local depth; :data:`INFLATION` makes it
+   column of the mask, the smaller; a run ends where the body part changes, a pixel outside the body
+   taking the part of the nearest body pixel in its row (:func:`row_nearest`), so a sleeve touching
+   the torso is as thick as the sleeve and a skirt below hanging hands keeps its whole width), in
+   world units at the local depth; :data:`INFLATION` makes it
    a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
    neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body does not
    (:data:`LOOSE_RANGE`), so a skirt, a gown, a coat or hair gets volume while a torso whose arms
    touch it keeps the body's own thickness. ``T = 0`` on the footprint's border, so front and back
    meet there.
-6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T``, one vertex per grid pixel of the
+6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
+   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one vertex per grid pixel of the
    footprint back-projected along its ray, two triangles per 2x2 block (one for a 3-pixel corner);
    both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
@@ -46,9 +50,12 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      body surface there; outside the body, the nearest part), the median colour of that part's
      visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments keep their
      colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
-     not carried over; hands keep their own colour;
-   * the head's back (part ``head``) is the hair colour sampled at the top of the head in the
-     photo, so no face appears on the back; when the photo shows the person's back
+     not carried over; where the torso or the legs are both the nearest and the farthest surface,
+     the torso and the legs take one median per row, so the garment's own hem decides, not the
+     body's waist line; hands keep their own colour;
+   * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
+     shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
+     in the photo, so no face appears on the back; when the photo shows the person's back
      (``facing_away``), the unseen side is the front and the head there takes the head's own
      median colour (no face is invented).
 
@@ -83,6 +90,7 @@ HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's c
 SKIN_INFLUENCES = 4
 ARM_REACH = 0.15  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
+SPIKE_DEPTH = 0.08  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -224,11 +232,14 @@ def _pyramid_solve(x0: np.ndarray, free: np.ndarray, weight: np.ndarray, iterati
     return _jacobi(np.where(free, up, x0), free, weight, iterations)
 
 
-def run_halfdepth(domain: np.ndarray) -> np.ndarray:
+def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``domain``, in pixels: the round cross-section's half-depth ``sqrt(a^2 - (x - c)^2)`` of
     the horizontal run of domain pixels it lies on (centre ``c``, half-length ``a``), and the same along
     its column; the smaller of the two. A skirt's rows are short and its columns long (round from the
-    side, not rounded at its hem); an outstretched arm's columns are the short ones."""
+    side, not rounded at its hem); an outstretched arm's columns are the short ones. With ``labels``
+    (H, W int, e.g. the body part beside each pixel) a row's run also ends where the label changes, so a
+    sleeve that touches the torso is as thick as the sleeve, not as the row through both (columns stay
+    whole: a skirt's column runs through the hands' rows)."""
 
     def along_rows(d: np.ndarray) -> np.ndarray:
         h, w = d.shape
@@ -245,7 +256,26 @@ def run_halfdepth(domain: np.ndarray) -> np.ndarray:
         return out
 
     d = domain.astype(bool)
-    return np.minimum(along_rows(d), along_rows(d.T).T)
+    rows = along_rows(d)
+    if labels is not None:
+        for value in np.unique(labels[d]):
+            region = d & (labels == value)
+            rows[region] = along_rows(region)[region]
+    return np.minimum(rows, along_rows(d.T).T)
+
+
+def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: np.ndarray,
+                  limit: float = SPIKE_DEPTH) -> tuple[np.ndarray, np.ndarray]:
+    """The sheets ``mid -/+ half`` with every pixel of the footprint ``domain`` that stands more than
+    ``limit`` out of its sheet's 5x5 median replaced by that median (a stray rasterised depth on the
+    body's edge, a one-pixel gap between a hand and the body: from the side, a spike), returned as
+    ``(mid, half)`` again, ``half`` 0 on ``border`` and never negative."""
+    sheets = []
+    for depth in (mid - half, mid + half):
+        smooth = cv2.medianBlur(nearest_fill(depth, domain).astype(np.float32), 5)
+        sheets.append(np.where(domain & (np.abs(depth - smooth) > limit), smooth, depth))
+    half = np.where(border, 0.0, np.maximum(0.5 * (sheets[1] - sheets[0]), 0.0))
+    return 0.5 * (sheets[0] + sheets[1]), half
 
 
 def harmonic_extension(values: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
@@ -263,6 +293,20 @@ def outside_of(region: np.ndarray) -> np.ndarray:
     padded = np.pad(free, 1, constant_values=1)
     _, labels = cv2.connectedComponents(padded, connectivity=4)
     return (labels == labels[0, 0])[1:-1, 1:-1]
+
+
+def row_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` (H, W) with every pixel taking the value of the nearest ``known`` pixel in its own row
+    (rows without one: the nearest known pixel anywhere)."""
+    out = nearest_fill(values, known)
+    for y in np.nonzero(known.any(axis=1))[0]:
+        cols = np.nonzero(known[y])[0]
+        x = np.arange(values.shape[1])
+        right = np.clip(np.searchsorted(cols, x), 0, len(cols) - 1)
+        left = np.clip(right - 1, 0, len(cols) - 1)
+        pick = np.where(np.abs(cols[left] - x) <= np.abs(cols[right] - x), cols[left], cols[right])
+        out[y] = values[y, pick]
+    return out
 
 
 def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -316,12 +360,19 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     """The colour of the unseen side per input-view pixel (contract step 6, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
-    objects narrower than half the part are not carried over; hands keep their own colour, the head
-    takes ``head_colour``."""
+    objects narrower than half the part are not carried over; the torso and the legs share one median
+    per row where both the nearest and the farthest surface are one of them (the garment's hem, not
+    the body's waist, divides them); hands keep their own colour, the head takes ``head_colour``
+    (behind a collar or a shoulder the neck takes the clothing's colour)."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
     out = nearest_fill(photo, person).astype(np.float32)
+    # the back of the neck behind a collar or a shoulder is the clothing's, not the hair's: the head's
+    # colour goes only behind what the photo shows as the head
+    head = PARTS.index("head")
+    back_part = np.where((back_part == head) & np.isin(front_part, [PARTS.index("torso"), PARTS.index("arms")]),
+                         front_part, back_part)
     for p in range(len(PARTS)):
         want = back_part == p
         source = person & (front_part == p)
@@ -334,6 +385,15 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         else:
             per_row = row_medians(photo, source, band)
             out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
+    # where the torso or the legs are both the nearest and the farthest surface, the garments' own hem
+    # (a shirt over the hips, a dress over the thighs) decides, not the body's waist line: one median
+    # per row over the torso and the legs together
+    trunk = [PARTS.index("torso"), PARTS.index("legs")]
+    source = person & np.isin(front_part, trunk)
+    same = np.isin(front_part, trunk) & np.isin(back_part, trunk)
+    if source.sum() >= 4 and same.any():
+        per_row = row_medians(photo, source, band)
+        out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
     torso = person & (front_part == PARTS.index("torso"))
     if head_colour is not None and torso.sum() >= 16:
         # only where hair can be told from the clothes under it
@@ -422,7 +482,10 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
     t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)
 
-    t_round = run_halfdepth(domain) * mid / fx * INFLATION
+    # a run ends where the body part beside it changes: a sleeve touching the torso in the photo is as
+    # thick as the sleeve, not as the row through both (wings from the side); the part of a loose pixel is
+    # that of the nearest body pixel in its own row, so a skirt below hanging hands keeps its whole width
+    t_round = run_halfdepth(domain, row_nearest(maps["front_part"], body)) * mid / fx * INFLATION
     # inflate where the mask reaches beyond the body (loose clothing, hair, objects), not where it hugs it
     window = max(3, int(LOOSE_WINDOW * g) | 1)
     area = cv2.boxFilter(domain.astype(np.float32), -1, (window, window), normalize=False)
@@ -440,6 +503,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
+    mid, half = remove_spikes(mid, half, domain, border)
 
     # vertices: front sheet on every domain pixel, back sheet on interior pixels (border shared in position)
     rows, cols = np.nonzero(domain)

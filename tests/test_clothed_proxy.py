@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 import torch
 
-from humanvdm_core.clothed_proxy import harmonic_extension, nearest_fill, row_medians, run_halfdepth
+from humanvdm_core.clothed_proxy import (
+    PARTS,
+    harmonic_extension,
+    nearest_fill,
+    remove_spikes,
+    row_medians,
+    run_halfdepth,
+    unseen_side_colours,
+)
 
 
 def test_run_halfdepth_gives_round_cross_sections():
@@ -22,6 +30,65 @@ def test_run_halfdepth_gives_round_cross_sections():
     block[20:180, 10:50] = True
     rb = run_halfdepth(block)
     assert abs(rb[170, 30] - 20.0) < 0.6  # 10 px above the bottom edge: still the full half-width
+
+
+def test_a_sleeve_touching_the_torso_is_as_thick_as_the_sleeve_not_as_the_row():
+    """A 100 px torso with a 20 px sleeve touching it on each side: without part labels each row is
+    one 140 px run, so the sleeve would get the torso's thickness (the "wings" seen from the side);
+    with the nearest part as labels the sleeve's run is its own."""
+    domain = np.zeros((200, 200), bool)
+    domain[20:180, 30:170] = True
+    labels = np.zeros((200, 200), np.int64)
+    labels[:, :50] = labels[:, 150:] = PARTS.index("arms")
+    plain = run_halfdepth(domain)
+    by_part = run_halfdepth(domain, labels)
+    assert plain[100, 40] > 30  # 10 px into a 140 px run: 37 px
+    assert abs(by_part[100, 40] - 10.0) < 0.6  # the middle of a 20 px sleeve: its own half-width
+    assert abs(by_part[100, 100] - 50.0) < 0.6  # the torso keeps its own round cross-section
+    assert by_part[10, 100] == 0
+
+
+def test_remove_spikes_flattens_one_stray_pixel_and_keeps_real_steps():
+    """One pixel of a sheet 0.4 m in front of its neighbours (a stray rasterised depth) is a spike from
+    the side and goes; an arm-sized block 0.12 m in front of the body is kept."""
+    domain = np.zeros((60, 60), bool)
+    domain[5:55, 5:55] = True
+    border = domain & ~np.pad(np.ones((48, 48), bool), 6)
+    mid = np.full((60, 60), 3.0)
+    half = np.where(domain & ~border, 0.1, 0.0)
+    mid[30, 30] -= 0.2
+    half[30, 30] += 0.2  # front sheet 0.4 m out at one pixel
+    mid[10:30, 40:50] -= 0.12  # a block in front: a real step
+    new_mid, new_half = remove_spikes(mid, half, domain, border)
+    assert abs((new_mid - new_half)[30, 30] - 2.9) < 1e-6 and abs((new_mid + new_half)[30, 30] - 3.1) < 1e-6
+    assert np.allclose(new_mid[12:28, 42:48], 2.88) and np.allclose(new_half[border], 0.0)
+
+
+def test_the_unseen_side_follows_the_garments_hem_and_the_neck_takes_the_collars_colour():
+    """Back pixels where the body's waist line (legs below it) lies above the shirt's hem take the
+    shirt's colour, not the trousers' at the sides of those rows; the back of the neck behind the
+    collar takes the shirt's colour, not the hair's."""
+    size = 100
+    shirt, trousers, face, hair = (0.9, 0.9, 0.9), (0.1, 0.1, 0.3), (0.8, 0.6, 0.5), (0.2, 0.1, 0.0)
+    photo = np.zeros((size, size, 3), np.float32)
+    photo[:] = trousers
+    photo[:60, 30:70] = shirt  # the shirt hangs to row 60
+    photo[5:20, 40:60] = face
+    mask = np.zeros((size, size), np.float32)
+    mask[5:95, 30:70] = 1.0
+    mask[50:95, 20:30] = 1.0  # trousers seen beside the shirt's hem (wide hips)
+    front = np.full((size, size), PARTS.index("torso"))
+    front[5:20, 40:60] = PARTS.index("head")
+    front[50:, :] = np.where(np.arange(size)[None] < 30, PARTS.index("legs"), front[50:, :])
+    front[60:, :] = PARTS.index("legs")
+    back = front.copy()
+    back[45:60, 30:70] = PARTS.index("legs")  # the body's waist line from behind: above the hem
+    back[20:25, 45:55] = PARTS.index("head")  # the neck behind the collar
+    out = unseen_side_colours(photo, mask, front, back, np.asarray(hair, np.float32))
+    assert np.allclose(out[55, 50], shirt, atol=0.05)  # legs by the body, shirt by the photo
+    assert np.allclose(out[80, 50], trousers, atol=0.05)
+    assert np.allclose(out[22, 50], shirt, atol=0.05)  # the neck behind the collar
+    assert np.allclose(out[10, 50], hair, atol=0.05)  # the head's back
 
 
 def test_harmonic_extension_and_nearest_fill():
