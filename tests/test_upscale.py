@@ -86,11 +86,18 @@ def test_alpha_is_resampled_not_sharpened():
     np.testing.assert_array_equal(alpha, unsharpened[..., 3])
 
 
-def test_upscale_frame_set_scales_cameras_and_layers(tmp_path):
+def test_upscale_frame_set_scales_cameras_and_layers(tmp_path, caplog):
+    import logging
+
     src = make_frame_set(tmp_path / "in", size=48)
-    info = upscale_frame_set(src, tmp_path / "out", UpscaleOptions(target_size=90))
+    log = logging.getLogger("test_upscale")
+    with caplog.at_level(logging.INFO, logger="test_upscale"):
+        info = upscale_frame_set(src, tmp_path / "out", UpscaleOptions(target_size=90), log=log)
     out = tmp_path / "out"
     assert not info["passthrough"] and info["layers"] == ["depth", "normals"] and info["skipped"] == ["notes.txt"]
+    # a file left behind (diffuse's proxy.npz, read from diffuse) is said in the log, not warned of in the summary
+    assert any("not carried over" in r.message for r in caplog.records)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     frames = read_frames(out)
     assert frames.shape == (3, 90, 90, 4)
     cams, src_cams = read_cameras(out), read_cameras(src)

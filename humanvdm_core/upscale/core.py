@@ -228,7 +228,7 @@ def upscale_frame_set(src: str | Path, dst: str | Path, opts: UpscaleOptions, ba
     if log:
         log.info("upscaled %d frames %d -> %d (%s); layers resampled nearest: %s", len(paths), size,
                  opts.target_size, backend, layers or "none")
-        if skipped:
-            log.warning("not carried over: %s", skipped)
+        if skipped:  # e.g. diffuse's proxy.npz, which its readers take from diffuse itself: not doubtful
+            log.info("not carried over: %s", skipped)
     return {"passthrough": False, "frames": len(paths), "source_size": size, "target_size": opts.target_size,
             "layers": layers, "skipped": skipped}
