@@ -32,9 +32,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    the torso is as thick as the sleeve and a skirt below hanging hands keeps its whole width), in
    world units at the local depth; :data:`INFLATION` makes it
    a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
-   neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body does not
-   (:data:`LOOSE_RANGE`), so a skirt, a gown, a coat or hair gets volume while a torso whose arms
-   touch it keeps the body's own thickness. ``T = 0`` on the footprint's border, so front and back
+   neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
+   left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
+   skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness. ``T = 0`` on the footprint's border, so front and back
    meet there.
 6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one vertex per grid pixel of the
@@ -88,7 +88,7 @@ BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from insi
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_INFLUENCES = 4
-ARM_REACH = 0.15  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
+ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 SPIKE_DEPTH = 0.08  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
@@ -492,7 +492,9 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # holes: pixels the body surrounds but does not cover (between an arm and the torso, a rasterisation gap)
     # take the surrounding body's thickness; only what lies outside the body's outline is loose
     holes = domain & ~body & ~outside_of(body)
-    loose = cv2.boxFilter((domain & ~body & ~holes).astype(np.float32), -1, (window, window), normalize=False)
+    # hands and arms hanging beside a skirt or a coat do not make it tight: only the trunk's cover counts
+    trunk_cover = body & ~np.isin(maps["front_part"], limbs)
+    loose = cv2.boxFilter((domain & ~trunk_cover & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
     t_inflate = looseness * t_round
     if legs_hidden:  # the garment hangs from where it fits, not from the guessed legs inside it
