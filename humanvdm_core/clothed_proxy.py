@@ -50,7 +50,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      body surface there; outside the body, the nearest part), the median colour of that part's
      visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments keep their
      colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
-     not carried over; where the torso or the legs are both the nearest and the farthest surface,
+     not carried over; arms and legs take their medians per side of the body (what one hand holds
+     stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
      the torso and the legs take one median per row, so the garment's own hem decides, not the
      body's waist line; hands keep their own colour;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
@@ -88,6 +89,7 @@ BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from insi
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_INFLUENCES = 4
+PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 SPIKE_DEPTH = 0.08  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
@@ -154,6 +156,28 @@ def vertex_parts(skinning_weights: np.ndarray, joint_names: list[str]) -> np.nda
     return per_part.argmax(axis=1)
 
 
+def side_of_joints(joint_names: list[str]) -> np.ndarray:
+    """(J,) int: +1 for a joint on the body's left (Anny's ``.L``, SMPL's ``left_``), -1 on its right, 0
+    on the midline."""
+    out = np.zeros(len(joint_names), np.int64)
+    for j, name in enumerate(joint_names):
+        low = name.lower()
+        if low.endswith(".l") or low.startswith("left"):
+            out[j] = 1
+        elif low.endswith(".r") or low.startswith("right"):
+            out[j] = -1
+    return out
+
+
+def vertex_sides(skinning_weights: np.ndarray, joint_names: list[str]) -> np.ndarray:
+    """(V,) int side of each body vertex (+1 left, -1 right, 0 midline): the side whose joints hold
+    most of its skinning weight, when that is more than half of it."""
+    side = side_of_joints(joint_names)
+    left = skinning_weights[:, side == 1].sum(axis=1)
+    right = skinning_weights[:, side == -1].sum(axis=1)
+    return np.where(left > 0.5, 1, np.where(right > 0.5, -1, 0)).astype(np.int64)
+
+
 # ----------------------------------------------------------------------------- body maps
 
 def _reflected(vertices: np.ndarray, camera: Cameras) -> tuple[np.ndarray, float]:
@@ -167,12 +191,16 @@ def _reflected(vertices: np.ndarray, camera: Cameras) -> tuple[np.ndarray, float
     return world, c
 
 
-def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera: Cameras) -> dict[str, np.ndarray]:
-    """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage and
-    the part of the nearest and of the farthest surface (-1 where empty)."""
+def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera: Cameras,
+              sides: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage, the
+    part of the nearest and of the farthest surface (-1 where empty) and, from ``sides`` (V,) in
+    {-1, 0, 1}, their sides (0 where empty or without ``sides``)."""
     from humanvdm_core.render import render_views
 
     code = np.repeat(((parts + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
+    if sides is not None:
+        code[:, 1] = (np.asarray(sides) + 1.5) / 3.0
     near = render_views(TexturedMesh(vertices, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
     world, c = _reflected(np.asarray(vertices, np.float64), camera)
     far = render_views(TexturedMesh(world, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
@@ -194,8 +222,15 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
         p = np.floor(result.rgba[0, ..., 0] * len(PARTS)).astype(np.int64)
         return np.where(result.depth[0] > 0, np.clip(p, 0, len(PARTS) - 1), -1)
 
+    def side_map(result) -> np.ndarray:
+        if sides is None:
+            return np.zeros(result.depth[0].shape, np.int64)
+        side = np.clip(np.floor(result.rgba[0, ..., 1] * 3.0).astype(np.int64) - 1, -1, 1)
+        return np.where(result.depth[0] > 0, side, 0)
+
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
-            "front_part": part_map(near), "back_part": part_map(far), "trunk_front": trunk.depth[0].astype(np.float64)}
+            "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
+            "back_side": side_map(far), "trunk_front": trunk.depth[0].astype(np.float64)}
 
 
 # ----------------------------------------------------------------------------- PDE helpers
@@ -356,7 +391,8 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
 
 
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
-                        head_colour: np.ndarray | None) -> np.ndarray:
+                        head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
+                        back_side: np.ndarray | None = None) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 6, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -385,6 +421,13 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         else:
             per_row = row_medians(photo, source, band)
             out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
+            if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
+                # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
+                for side in (-1, 1):
+                    own, own_source = want & (back_side == side), source & (front_side == side)
+                    if own.any() and own_source.sum() >= 4:
+                        per_row = row_medians(photo, own_source, band)
+                        out[own] = np.broadcast_to(per_row[:, None, :], photo.shape)[own]
     # where the torso or the legs are both the nearest and the farthest surface, the garments' own hem
     # (a shirt over the hips, a dress over the thighs) decides, not the body's waist line: one median
     # per row over the torso and the legs together
@@ -451,7 +494,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
     parts = vertex_parts(skinning_weights, joint_names)
-    maps = body_maps(np.asarray(vertices, np.float32), np.asarray(faces, np.int32), parts, cam_g)
+    maps = body_maps(np.asarray(vertices, np.float32), np.asarray(faces, np.int32), parts, cam_g,
+                     vertex_sides(skinning_weights, joint_names))
 
     person_g = cv2.resize(mask.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA) > 0.5
     domain = cv2.dilate(person_g.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
@@ -558,7 +602,11 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     if head_colour is None:
         head_pixels = (fp == PARTS.index("head")) & (mask > 0.5)
         head_colour = np.median(front_tex[head_pixels], axis=0) if head_pixels.any() else None
-    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour)
+    fs = cv2.resize(maps["front_side"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    bs = cv2.resize(maps["back_side"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    fs = nearest_fill(fs, known).astype(np.int64) if known.any() else np.zeros_like(fs, np.int64)
+    bs = np.where(bknown, bs, fs).astype(np.int64)
+    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = (cols + 0.5) * to_full / size
     v = 1.0 - (rows + 0.5) * to_full / size

@@ -91,6 +91,32 @@ def test_the_unseen_side_follows_the_garments_hem_and_the_neck_takes_the_collars
     assert np.allclose(out[10, 50], hair, atol=0.05)  # the head's back
 
 
+def test_what_one_arm_holds_stays_off_the_other_arms_back():
+    """Both arms in a light sleeve; the right one's visible pixels covered by a dark held folder over
+    rows 20-60. Coloured per side, the left arm's back keeps the sleeve's colour (one median over both
+    arms would take the folder's, as the folder covers more pixels there); a body without sides is
+    coloured as before."""
+    from humanvdm_core.clothed_proxy import side_of_joints
+
+    size = 100
+    sleeve, folder = np.array((0.7, 0.75, 0.9), np.float32), np.array((0.2, 0.2, 0.2), np.float32)
+    photo = np.zeros((size, size, 3), np.float32)
+    photo[:] = (0.9, 0.9, 0.9)
+    photo[:, 10:30] = folder  # the right arm, covered by the folder (20 px wide) ...
+    photo[:, 80:90] = sleeve  # ... the left arm's sleeve visible (10 px wide)
+    mask = np.ones((size, size), np.float32)
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:, 10:30] = part[:, 80:90] = PARTS.index("arms")
+    side = np.zeros((size, size), np.int64)
+    side[:, 10:30], side[:, 80:90] = -1, 1
+    plain = unseen_side_colours(photo, mask, part, part, None)
+    per_side = unseen_side_colours(photo, mask, part, part, None, side, side)
+    assert np.allclose(plain[40, 85], folder, atol=0.05)
+    assert np.allclose(per_side[40, 85], sleeve, atol=0.05)
+    assert np.allclose(per_side[40, 20], folder, atol=0.05)  # the holding arm itself: its own pixels
+    assert list(side_of_joints(["upperarm01.L", "upperarm01.R", "spine01", "left_knee", "right_elbow"])) == [1, -1, 0, 1, -1]
+
+
 def test_harmonic_extension_and_nearest_fill():
     values = np.zeros((40, 40))
     known = np.zeros((40, 40), bool)
