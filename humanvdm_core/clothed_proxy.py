@@ -34,11 +34,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
    neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
    left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
-   skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness. ``T = 0`` on the footprint's border, so front and back
-   meet there.
+   skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness. ``T = 0``
+   on the footprint's border, so front and back meet there.
 6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
-   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one vertex per grid pixel of the
-   footprint back-projected along its ray, two triangles per 2x2 block (one for a 3-pixel corner);
+   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
+   vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block (one for a 3-pixel corner);
    both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
@@ -396,10 +396,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     """The colour of the unseen side per input-view pixel (contract step 6, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
-    objects narrower than half the part are not carried over; the torso and the legs share one median
-    per row where both the nearest and the farthest surface are one of them (the garment's hem, not
-    the body's waist, divides them); hands keep their own colour, the head takes ``head_colour``
-    (behind a collar or a shoulder the neck takes the clothing's colour)."""
+    objects narrower than half the part are not carried over; with ``front_side`` / ``back_side`` (the
+    body's side per pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the
+    torso and the legs share one median per row where both the nearest and the farthest surface are
+    one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
+    the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour)."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
