@@ -38,8 +38,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    on the footprint's border, so front and back meet there.
 6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
-   vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block (one for a 3-pixel corner);
-   both sheets share positions along the border (border vertices are duplicated, so each sheet has
+   vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
+   (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
 7. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
