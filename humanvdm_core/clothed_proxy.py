@@ -370,9 +370,21 @@ def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX) -> np
     return nearest_fill(rgb, inner)
 
 
+def median_colour(pixels: np.ndarray) -> np.ndarray:
+    """(C,) the median colour of ``pixels`` (N, C) as a colour they have: the mean of the pixels whose
+    brightness (channel mean) lies in the middle fifth of theirs. A per-channel median mixes the
+    channels of different pixels (half a light shirt and half dark jeans give a skin tone)."""
+    if len(pixels) <= 2:
+        return np.median(pixels, axis=0)
+    order = np.argsort(pixels.mean(axis=1), kind="stable")
+    n = len(order)
+    lo, hi = int(0.4 * n), max(int(0.4 * n) + 1, int(np.ceil(0.6 * n)))
+    return pixels[order[lo:hi]].mean(axis=0)
+
+
 def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
-    """(H, C): per image row, the median colour of the ``select``ed pixels within ``band`` rows of it
-    (rows with none take the nearest row that has some)."""
+    """(H, C): per image row, the median colour (:func:`median_colour`) of the ``select``ed pixels within
+    ``band`` rows of it (rows with none take the nearest row that has some)."""
     h = image.shape[0]
     out = np.full((h, image.shape[2]), np.nan, np.float32)
     counts = select.sum(axis=1)
@@ -380,7 +392,7 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
         y0, y1 = max(0, y - band), min(h, y + band + 1)
         if counts[y0:y1].sum() == 0:
             continue
-        out[y] = np.median(image[y0:y1][select[y0:y1]], axis=0)
+        out[y] = median_colour(image[y0:y1][select[y0:y1]])
     have = np.nonzero(np.isfinite(out[:, 0]))[0]
     if len(have) == 0:
         return np.zeros_like(out)

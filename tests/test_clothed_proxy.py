@@ -10,6 +10,7 @@ import torch
 from humanvdm_core.clothed_proxy import (
     PARTS,
     harmonic_extension,
+    median_colour,
     nearest_fill,
     remove_spikes,
     row_medians,
@@ -138,6 +139,16 @@ def test_row_medians_ignore_a_narrow_print():
     some = np.zeros((30, 30), bool)
     some[:5] = True
     assert np.allclose(row_medians(image, some, band=0)[25], (0.8, 0.0, 0.0))  # rows without pixels: nearest
+
+
+def test_median_colour_is_a_colour_the_pixels_have():
+    """Red, green and blue pixels in equal numbers: a per-channel median is black, a colour none of them
+    has (on the photos: bands of pink and green across a lavender shirt's back)."""
+    pixels = np.repeat(np.eye(3, dtype=np.float32), 3, axis=0)
+    assert np.allclose(np.median(pixels, axis=0), 0.0)
+    assert any(np.allclose(median_colour(pixels), c) for c in np.eye(3))
+    shirt = np.concatenate([np.full((7, 3), (0.75, 0.75, 0.9)), np.full((3, 3), (0.1, 0.1, 0.1))]).astype(np.float32)
+    assert np.allclose(median_colour(shirt), (0.75, 0.75, 0.9))
 
 
 def _cylinder_body():
