@@ -191,6 +191,12 @@ def _reflected(vertices: np.ndarray, camera: Cameras) -> tuple[np.ndarray, float
     return world, c
 
 
+def _face_mode(values: np.ndarray) -> np.ndarray:
+    """(F,) the value most of each face's three corners have ((F, 3) int; the first on a three-way tie)."""
+    a, b, c = values[:, 0], values[:, 1], values[:, 2]
+    return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
+
+
 def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera: Cameras,
               sides: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage, the
@@ -198,12 +204,18 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     {-1, 0, 1}, their sides (0 where empty or without ``sides``)."""
     from humanvdm_core.render import render_views
 
-    code = np.repeat(((parts + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
-    if sides is not None:
-        code[:, 1] = (np.asarray(sides) + 1.5) / 3.0
-    near = render_views(TexturedMesh(vertices, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
-    world, c = _reflected(np.asarray(vertices, np.float64), camera)
-    far = render_views(TexturedMesh(world, faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+    # one part (and side) per face, drawn flat: codes interpolated across a face between two parts pass
+    # through the codes of others (torso -> legs through head and hands: a line of them along the waist)
+    face_part, face_side = _face_mode(parts[faces]), _face_mode(np.asarray(sides)[faces]) if sides is not None else None
+    code = np.repeat(((face_part + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
+    if face_side is not None:
+        code[:, 1] = (face_side + 1.5) / 3.0
+    code = np.repeat(code, 3, axis=0)
+    flat = np.arange(3 * len(faces)).reshape(-1, 3)
+    corners = np.asarray(vertices)[faces].reshape(-1, 3)
+    near = render_views(TexturedMesh(corners, flat, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+    world, c = _reflected(np.asarray(corners, np.float64), camera)
+    far = render_views(TexturedMesh(world, flat, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
     w2c = camera.w2c[0]
     z = np.asarray(vertices, np.float64) @ w2c[:3, 2] + w2c[2, 3]
     lo, hi = float(z.min()) - 0.01, float(z.max()) + 0.01
@@ -215,8 +227,8 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
     # the body without its arms and hands: what lies behind an arm held in front of the body
     limb = np.isin(parts, [PARTS.index("arms"), PARTS.index("hands")])
-    trunk_faces = faces[~limb[faces].all(axis=1)]
-    trunk = render_views(TexturedMesh(vertices, trunk_faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+    trunk_faces = flat[~limb[faces].all(axis=1)]
+    trunk = render_views(TexturedMesh(corners, trunk_faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
 
     def part_map(result) -> np.ndarray:
         p = np.floor(result.rgba[0, ..., 0] * len(PARTS)).astype(np.int64)

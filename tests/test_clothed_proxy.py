@@ -151,6 +151,25 @@ def test_median_colour_is_a_colour_the_pixels_have():
     assert np.allclose(median_colour(shirt), (0.75, 0.75, 0.9))
 
 
+def test_body_maps_show_no_third_part_between_two():
+    """A strip whose top corners are torso and bottom corners legs: the part maps show those two only (codes
+    interpolated across its faces passed through head, arms and hands: a line of hand colour along the
+    waist of every back)."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import body_maps
+
+    xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, 4), np.linspace(-0.6, 0.6, 2))
+    vertices = np.stack([xs.ravel(), ys.ravel(), np.zeros(8)], axis=1).astype(np.float32)
+    faces = np.array([[0, 4, 1], [1, 4, 5], [1, 5, 2], [2, 5, 6], [2, 6, 3], [3, 6, 7]], np.int32)
+    faces = np.concatenate([faces, faces[:, ::-1]])  # both windings: seen from either side
+    parts = np.where(vertices[:, 1] < 0, PARTS.index("legs"), PARTS.index("torso"))
+    cam = orbit_cameras(1, 96, 33.8, 0.0, 3.0, azimuths_deg=np.array([0.0]))
+    maps = body_maps(vertices, faces, parts, cam)
+    for key in ("front_part", "back_part"):
+        seen = set(np.unique(maps[key][maps[key] >= 0]).tolist())
+        assert seen and seen <= {PARTS.index("torso"), PARTS.index("legs")}, (key, seen)
+
+
 def _cylinder_body():
     import trimesh
 
