@@ -206,10 +206,9 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
     # one part (and side) per face, drawn flat: codes interpolated across a face between two parts pass
     # through the codes of others (torso -> legs through head and hands: a line of them along the waist)
-    face_part, face_side = _face_mode(parts[faces]), _face_mode(np.asarray(sides)[faces]) if sides is not None else None
-    code = np.repeat(((face_part + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
-    if face_side is not None:
-        code[:, 1] = (face_side + 1.5) / 3.0
+    code = np.repeat(((_face_mode(parts[faces]) + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
+    if sides is not None:
+        code[:, 1] = (_face_mode(np.asarray(sides)[faces]) + 1.5) / 3.0
     code = np.repeat(code, 3, axis=0)
     flat = np.arange(3 * len(faces)).reshape(-1, 3)
     corners = np.asarray(vertices)[faces].reshape(-1, 3)
@@ -386,8 +385,6 @@ def median_colour(pixels: np.ndarray) -> np.ndarray:
     """(C,) the median colour of ``pixels`` (N, C) as a colour they have: the mean of the pixels whose
     brightness (channel mean) lies in the middle fifth of theirs. A per-channel median mixes the
     channels of different pixels (half a light shirt and half dark jeans give a skin tone)."""
-    if len(pixels) <= 2:
-        return np.median(pixels, axis=0)
     order = np.argsort(pixels.mean(axis=1), kind="stable")
     n = len(order)
     lo, hi = int(0.4 * n), max(int(0.4 * n) + 1, int(np.ceil(0.6 * n)))
