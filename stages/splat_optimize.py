@@ -18,12 +18,14 @@ test and averaged; Gaussians no frame sees are dropped), so the first step alrea
 Then: a per-Gaussian feature + MLP decoder for offsets / colour residuals / scales, learned opacities
 (``learn_opacity``), LBS posing (``refine_pose``: the paper's joint pose refinement, off by default), 0.8 L1 + 0.2 (1 - SSIM) (+ 0.2 LPIPS with
 ``lpips_weights``) + 10 offset² + 1 scale² + 1 feature², Adam lr 3e-3, 2 views a batch (a quarter of the
-batches hold the input photo's view, ``input_view_share``: the photo is the one view not generated), the
-first steps at half resolution, and (``densify``) pruning and splitting at the preset's steps, so the count
+batches hold the input photo's view, ``input_view_share``: the photo is the one view not generated; that
+view trains at ``input_view_resolution``, finer than the others, and its finer residuals count when
+splitting), the first steps at half resolution, and (``densify``) pruning and splitting at the preset's steps, so the count
 follows the subject; the counts go to ``train_log.json``.
 
 Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``subject_spacing`` / ``uv_resolution`` /
-``train_resolution`` / ``iterations`` / ``tile_size`` unless those params are set (non-zero), and the
+``train_resolution`` / ``input_view_resolution`` / ``iterations`` / ``tile_size`` unless those params are set
+(non-zero), and the
 coarse share, the densify steps and the cap on the count (see :data:`humanvdm_core.splat.human.PRESETS`):
 ``tiny`` (tests), ``cpu`` (a CPU run of minutes), ``full`` (paper size, for a GPU with gsplat).
 
@@ -75,6 +77,8 @@ SPEC = StageSpec(
         "learn_opacity": Param(True, "optimise each Gaussian's opacity (False: opacity 1, as the paper)"),
         "split_residual": Param(0.1, "render error (mean |colour| + |alpha|) above which a Gaussian is split"),
         "train_resolution": Param(0, "training image size in pixels; 0: from the preset"),
+        "input_view_resolution": Param(0, "the input photo's view trains at this size (at most the frames' own; "
+                                          "at or below train_resolution: as the others); 0: from the preset"),
         "iterations": Param(0, "optimiser steps; 0: from the preset"),
         "tile_size": Param(0, "rasterizer tile size; 0: from the preset"),
         "scale_mode": Param("isotropic", "Gaussian scales: one (isotropic) or three per Gaussian",
@@ -117,7 +121,8 @@ def resolve_settings(p: dict, cuda: bool) -> dict:
 
     name = p["preset"] if p["preset"] != "auto" else ("full" if cuda else "cpu")
     out = {"preset": name, **PRESETS[name]}
-    for key in ("uv_resolution", "subject_spacing", "train_resolution", "iterations", "tile_size"):
+    for key in ("uv_resolution", "subject_spacing", "train_resolution", "input_view_resolution", "iterations",
+                "tile_size"):
         if p[key] < 0:
             raise ConfigError(f"param {key} must be >= 0, got {p[key]}")
         if p[key] > 0:
@@ -155,10 +160,15 @@ def run(ctx: StageContext) -> None:
     anchor = H.load_body_anchor(body_path, s["uv_resolution"], load_model=p["refine_pose"])
     views = H.load_views(ctx.inputs["frames"], s["train_resolution"])
     cameras = read_cameras(ctx.inputs["frames"])
+    input_view = H.input_view_index(cameras.azimuth_deg)
+    photo_size = min(s["input_view_resolution"], cameras.width)
+    photo = (H.load_views(ctx.inputs["frames"], photo_size, [input_view])
+             if input_view >= 0 and photo_size > s["train_resolution"] else None)
     proxy = ctx.inputs["orbit"] / "proxy.npz" if "orbit" in ctx.inputs else None
     anchor, template = start_anchor(anchor, views, p["template"], s["subject_spacing"], proxy, p["seed"])
-    ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d², %d iterations on %s", s["preset"], template,
-                 len(anchor.positions), len(views.images), s["train_resolution"], s["iterations"], device.type)
+    ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d² (the input view at %d²), %d iterations on %s",
+                 s["preset"], template, len(anchor.positions), len(views.images), s["train_resolution"],
+                 photo.size if photo is not None else s["train_resolution"], s["iterations"], device.type)
     human = H.GaussianHuman(anchor, feature_dim=p["feature_dim"], hidden=p["hidden"], scale_mode=p["scale_mode"],
                             refine_pose=p["refine_pose"], seed=p["seed"], min_scale=p["min_scale"],
                             learn_opacity=p["learn_opacity"]).to(device)
@@ -175,8 +185,8 @@ def run(ctx: StageContext) -> None:
         tile_size=s["tile_size"], log_every=max(1, s["iterations"] // 50), coarse_fraction=s["coarse_fraction"],
         densify_at=tuple(s["densify_at"]) if p["densify"] else (), max_gaussians=s["max_gaussians"],
         split_residual=p["split_residual"],
-        input_view=H.input_view_index(cameras.azimuth_deg), input_view_share=p["input_view_share"])
-    result = H.fit_gaussians(human, views, config, log=ctx.log.info)  # progress in the stage log
+        input_view=input_view, input_view_share=p["input_view_share"])
+    result = H.fit_gaussians(human, views, config, log=ctx.log.info, photo=photo)  # progress in the stage log
     ctx.log.info("trained in %.1f s: loss %.4f -> %.4f, training PSNR %.2f dB", result.wall_s,
                  result.losses[0] if result.losses else float("nan"),
                  result.losses[-1] if result.losses else float("nan"), result.train_psnr)

@@ -28,7 +28,8 @@ HELD_OUT = (2, 7, 12, 17)
 
 @pytest.fixture(scope="module")
 def subject(tmp_path_factory) -> Path:
-    """(root) with ``orbit/`` (21 views, 64², blue-grey background) and ``body/body.npz`` (truth)."""
+    """(root) with ``orbit/`` (21 views, 64², blue-grey background), ``orbit_fine/`` (the same at 128²) and
+    ``body/body.npz`` (truth)."""
     torch.set_num_threads(1)
     from humanvdm_core.body.model import BodyParams
     from humanvdm_core.cameras import orbit_cameras
@@ -47,6 +48,8 @@ def subject(tmp_path_factory) -> Path:
     cams.extra["background"] = np.asarray(background)
     result = render_views(scan.transformed(world_from_scan), cams, background)
     write_frames(root / "orbit", result.rgba, cams)
+    fine = cams.scaled(2 * SIZE, 2 * SIZE)  # the same orbit at 128², for the finer input view
+    write_frames(root / "orbit_fine", render_views(scan.transformed(world_from_scan), fine, background).rgba, fine)
     (root / "body").mkdir()
     H.write_oracle_body(root / "body" / "body.npz", BodyParams.from_numpy(truth), world_from_scan, uv_resolution=64)
     return root
@@ -312,3 +315,25 @@ def test_the_input_views_share_brings_the_gaussians_closer_to_the_photo(subject)
             pred, _ = H.render(human(), views.w2c[photo:], views.K[photo:], SIZE, SIZE, views.background, 4)
         scores.append(H.psnr(pred, views.images[photo:]))
     assert scores[1] > scores[0] + 0.2, scores  # measured: 26.43 -> 26.78 dB
+
+
+def test_the_input_view_trained_finer_holds_more_of_the_photo(subject):
+    torch.set_num_threads(1)
+    anchor = H.load_body_anchor(subject / "body" / "body.npz", 128)
+    views = H.load_views(subject / "orbit_fine", SIZE)
+    photo_id = H.input_view_index(read_npz(subject / "orbit" / "cameras.npz")["azimuth_deg"])
+    fine = H.load_views(subject / "orbit_fine", 2 * SIZE, [photo_id])
+    config = dict(iterations=60, tile_size=4, input_view=photo_id, input_view_share=0.25, densify_at=(0.5,),
+                  split_residual=0.05)
+    scores, counts = [], []
+    for photo in (None, fine):
+        human = H.GaussianHuman(anchor, seed=0)
+        result = H.fit_gaussians(human, views, H.FitConfig(**config), photo=photo)
+        with torch.no_grad():
+            pred, _ = H.render(human(), fine.w2c, fine.K, 2 * SIZE, 2 * SIZE, fine.background, 4)
+        scores.append(H.psnr(pred, fine.images))
+        counts.append(result.counts[0]["split"])
+    assert scores[1] > scores[0] + 0.4, scores  # measured: 24.80 -> 25.61 dB at 128²
+    assert counts[1] >= counts[0], counts  # the photo's finer residuals split at least as many
+    with pytest.raises(H.ConfigError, match="input_view"):
+        H.fit_gaussians(H.GaussianHuman(anchor, seed=0), views, H.FitConfig(iterations=1, tile_size=4), photo=fine)

@@ -22,8 +22,9 @@ Model (:class:`GaussianHuman`):
   rotated by its blended bone rotation and scaled by the body's scale.
 
 Fitting (:func:`fit_gaussians`): Adam (lr 3e-3) on batches of ``batch_views`` training views in a
-seeded, fixed order (``input_view_share`` of the batches hold ``input_view``, the photo's own view); loss ``0.8 L1 + 0.2 (1 - SSIM) [+ 0.2 LPIPS] + 10 |offset|^2 + 1 |scale|^2 +
-1 |feature|^2`` (means over Gaussians / feature entries; offsets and scales in world units),
+seeded, fixed order (``input_view_share`` of the batches hold ``input_view``, the photo's own view,
+optionally at a finer resolution than the others: ``photo``); loss ``0.8 L1 + 0.2 (1 - SSIM) [+ 0.2 LPIPS]
++ 10 |offset|^2 + 1 |scale|^2 + 1 |feature|^2`` (means over Gaussians / feature entries; offsets and scales in world units),
 renders composited over the frame set's background colour. Coarse to fine: the first
 ``coarse_fraction`` of the steps train on half-resolution views. At each ``densify_at`` share of the
 steps the set adapts to the scene (:func:`densify`): Gaussians whose learned opacity fell below
@@ -65,11 +66,11 @@ OPACITY_EPS = 1e-6  # opacity 1 is stored as logit(1 - eps) in the PLY
 # preset -> settings; Gaussians on Anny's UV layout: R=64 -> 2,558, 128 -> 10,253, 569 -> 202,521 (paper: 202,738)
 PRESETS: dict[str, dict[str, Any]] = {
     "tiny": {"uv_resolution": 64, "subject_spacing": 0.028, "train_resolution": 64, "iterations": 100, "tile_size": 4,
-             "coarse_fraction": 0.0, "densify_at": (0.5,), "max_gaussians": 5000},
+             "input_view_resolution": 0, "coarse_fraction": 0.0, "densify_at": (0.5,), "max_gaussians": 5000},
     "cpu": {"uv_resolution": 128, "subject_spacing": 0.016, "train_resolution": 192, "iterations": 500, "tile_size": 8,
-            "coarse_fraction": 0.3, "densify_at": (0.3, 0.6), "max_gaussians": 30000},
+            "input_view_resolution": 384, "coarse_fraction": 0.3, "densify_at": (0.3, 0.6), "max_gaussians": 30000},
     "full": {"uv_resolution": 569, "subject_spacing": 0.0045, "train_resolution": 1080, "iterations": 30000,
-             "tile_size": 16, "coarse_fraction": 0.1, "densify_at": (0.1, 0.2, 0.3, 0.4, 0.5), "max_gaussians": 500000},
+             "tile_size": 16, "input_view_resolution": 0, "coarse_fraction": 0.1, "densify_at": (0.1, 0.2, 0.3, 0.4, 0.5), "max_gaussians": 500000},
 }
 
 
@@ -590,20 +591,39 @@ def input_view_index(azimuth_deg: np.ndarray, tolerance_deg: float = 1.0) -> int
     return i if i >= 0 and off[i] <= tolerance_deg else -1
 
 
-def training_loss(human: GaussianHuman, views: TrainingViews, ids: torch.Tensor, config: FitConfig,
-                  lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
-    """The loss of one batch of views ``ids`` (see the module docstring)."""
+def image_loss(gs: GaussianSet, views: TrainingViews, ids: list[int], config: FitConfig,
+               lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+    """The photometric loss of the posed Gaussians ``gs`` against the views ``ids``: ``l1_weight`` L1 +
+    ``ssim_weight`` (1 - SSIM) [+ ``lpips_weight`` LPIPS] [+ ``mask_weight`` alpha L1]."""
     S = views.size
-    gs = human()
-    pred, alpha = render(gs, views.w2c[ids], views.K[ids], S, S, views.background, config.tile_size)
-    target = views.images[ids]
+    idx = torch.as_tensor(ids, dtype=torch.int64)
+    pred, alpha = render(gs, views.w2c[idx], views.K[idx], S, S, views.background, config.tile_size)
+    target = views.images[idx]
     p_nchw, t_nchw = pred.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
     loss = config.l1_weight * (pred - target).abs().mean()
     loss = loss + config.ssim_weight * (1.0 - ssim(p_nchw, t_nchw))
     if lpips is not None and config.lpips_weight > 0:
         loss = loss + config.lpips_weight * lpips(p_nchw, t_nchw)
     if config.mask_weight > 0:
-        loss = loss + config.mask_weight * (alpha - views.alphas[ids]).abs().mean()
+        loss = loss + config.mask_weight * (alpha - views.alphas[idx]).abs().mean()
+    return loss
+
+
+def training_loss(human: GaussianHuman, views: TrainingViews, ids: torch.Tensor, config: FitConfig,
+                  lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                  photo: TrainingViews | None = None) -> torch.Tensor:
+    """The loss of one batch of views ``ids`` (see the module docstring). With ``photo`` (the input view
+    ``config.input_view`` alone, at a finer resolution) a batch holding the input view scores it there;
+    each view of the batch weighs the same."""
+    gs = human()
+    ids = [int(i) for i in ids]
+    if photo is not None and config.input_view in ids:
+        rest = [i for i in ids if i != config.input_view]
+        loss = image_loss(gs, photo, [0], config, lpips)
+        if rest:
+            loss = (loss + len(rest) * image_loss(gs, views, rest, config, lpips)) / len(ids)
+    else:
+        loss = image_loss(gs, views, ids, config, lpips)
     loss = loss + config.offset_weight * (gs.offsets ** 2).sum(1).mean()
     loss = loss + config.scale_weight * (gs.scales ** 2).sum(1).mean()
     return loss + config.feature_weight * (human.features ** 2).mean()
@@ -655,9 +675,12 @@ def gaussian_residuals(human: GaussianHuman, views: TrainingViews, ids: list[int
     return torch.as_tensor(total / np.maximum(count, 1), dtype=torch.float32)
 
 
-def densify(human: GaussianHuman, views: TrainingViews, config: FitConfig) -> dict:
+def densify(human: GaussianHuman, views: TrainingViews, config: FitConfig,
+            photo: TrainingViews | None = None) -> dict:
     """Prune transparent Gaussians (learned opacity below ``prune_opacity``) and split those whose render
-    error exceeds ``split_residual`` (worst first, up to ``max_gaussians``); returns the counts."""
+    error exceeds ``split_residual`` (worst first, up to ``max_gaussians``); returns the counts. A
+    Gaussian's error is its mean over ``densify_views`` evenly spaced views, or its error in ``photo``
+    (the input view at a finer resolution) where that is larger."""
     pruned = 0
     if human.learn_opacity:
         with torch.no_grad():
@@ -667,6 +690,8 @@ def densify(human: GaussianHuman, views: TrainingViews, config: FitConfig) -> di
     n_views = len(views.images)
     ids = sorted({int(round(i * n_views / config.densify_views)) % n_views for i in range(config.densify_views)})
     residual = gaussian_residuals(human, views, ids, config.tile_size).to(human.anchors.device)
+    if photo is not None:
+        residual = torch.maximum(residual, gaussian_residuals(human, photo, [0], config.tile_size).to(residual.device))
     selected = residual > config.split_residual
     if config.max_gaussians > 0:
         room = max(0, config.max_gaussians - human.num_gaussians)
@@ -679,17 +704,24 @@ def densify(human: GaussianHuman, views: TrainingViews, config: FitConfig) -> di
 
 
 def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
-                  log: Callable[[str], None] | None = None) -> FitResult:
+                  log: Callable[[str], None] | None = None, photo: TrainingViews | None = None) -> FitResult:
     """Optimise ``human`` (in place) against ``views``; returns the loss curve, the counts after each
     densify step and timings. The first ``coarse_fraction`` of the iterations train on half-resolution
     views; after each share in ``densify_at`` the set is pruned and split (:func:`densify`) and the
-    optimiser restarts. Progress goes to the stage's progress channel (:func:`humanvdm_core.workflow.progress.report`)."""
+    optimiser restarts. ``photo``: the input view (``config.input_view``) alone at a finer resolution than
+    ``views``, where batches holding it train it and densifying looks for detail (the photo is the one
+    view that is not generated). Progress goes to the stage's progress channel (:func:`humanvdm_core.workflow.progress.report`)."""
     from humanvdm_core.workflow.progress import report
 
     config.check()
     torch.manual_seed(config.seed)
     views = views.to(human.anchors.device)
     coarse = half_views(views) if config.coarse_fraction > 0 else views
+    if photo is not None:
+        if not 0 <= config.input_view < len(views.images):
+            raise ConfigError("a finer input view needs config.input_view")
+        photo = photo.to(human.anchors.device)
+    coarse_photo = half_views(photo) if photo is not None and config.coarse_fraction > 0 else photo
     coarse_until = int(round(config.coarse_fraction * config.iterations))
     densify_its = {int(round(f * config.iterations)) for f in config.densify_at}
     lpips = load_lpips_loss(config.lpips_weights) if config.lpips_weights else None
@@ -701,12 +733,14 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
     S, ts = views.size, config.tile_size
     for it, idx in enumerate(batches):
         if it in densify_its and it > 0:
-            counts = {"iteration": it, **densify(human, views, config)}
+            counts = {"iteration": it, **densify(human, views, config, photo)}
             result.counts.append(counts)
             opt = make_optimizer(human, config)
             if log is not None:
                 log(f"iter {it:5d}: pruned {counts['pruned']}, split {counts['split']} -> {counts['count']} Gaussians")
-        loss = training_loss(human, coarse if it < coarse_until else views, torch.as_tensor(idx), config, lpips)
+        fine = it >= coarse_until
+        loss = training_loss(human, views if fine else coarse, torch.as_tensor(idx), config, lpips,
+                             photo if fine else coarse_photo)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
