@@ -25,8 +25,7 @@ follows the subject; the counts go to ``train_log.json``.
 
 Presets (``preset``; ``auto`` = ``full`` with CUDA, else ``cpu``) set ``subject_spacing`` / ``uv_resolution`` /
 ``train_resolution`` / ``input_view_resolution`` / ``iterations`` / ``tile_size`` unless those params are set
-(non-zero), and the
-coarse share, the densify steps and the cap on the count (see :data:`humanvdm_core.splat.human.PRESETS`):
+(non-zero), and the coarse share, the densify steps and the cap on the count (see :data:`humanvdm_core.splat.human.PRESETS`):
 ``tiny`` (tests), ``cpu`` (a CPU run of minutes), ``full`` (paper size, for a GPU with gsplat).
 
 Output ``gaussians``:

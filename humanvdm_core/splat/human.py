@@ -44,7 +44,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -609,7 +609,7 @@ def image_loss(gs: GaussianSet, views: TrainingViews, ids: list[int], config: Fi
     return loss
 
 
-def training_loss(human: GaussianHuman, views: TrainingViews, ids: torch.Tensor, config: FitConfig,
+def training_loss(human: GaussianHuman, views: TrainingViews, ids: Sequence[int], config: FitConfig,
                   lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
                   photo: TrainingViews | None = None) -> torch.Tensor:
     """The loss of one batch of views ``ids`` (see the module docstring). With ``photo`` (the input view
@@ -739,8 +739,7 @@ def fit_gaussians(human: GaussianHuman, views: TrainingViews, config: FitConfig,
             if log is not None:
                 log(f"iter {it:5d}: pruned {counts['pruned']}, split {counts['split']} -> {counts['count']} Gaussians")
         fine = it >= coarse_until
-        loss = training_loss(human, views if fine else coarse, torch.as_tensor(idx), config, lpips,
-                             photo if fine else coarse_photo)
+        loss = training_loss(human, views if fine else coarse, idx, config, lpips, photo if fine else coarse_photo)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
