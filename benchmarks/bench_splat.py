@@ -13,7 +13,10 @@ azimuths 45/135/225/315, rendered at ``--eval-size``².
 Runs, all with the ``cpu`` preset's settings (as the stage runs them: template, closed-form colours,
 coarse-to-fine, densify): ``template=body`` and ``template=subject`` (here the visual hull of the
 frames merged with the body: an oracle orbit has no clothed proxy), and for ``gown`` and ``renderpeople``
-the subject template started from points 32 / 22 / 11 mm apart (16 mm is the preset's; the count sweep). Per run: held-out PSNR,
+the subject template started from points 32 / 22 / 11 mm apart (16 mm is the preset's; the count sweep), and
+``subject, even spacing`` (``detail_spacing`` 1: no finer points where the input view shows detail). As in the
+stage, the training view at azimuth 0 stands in for the input photo (its share of the batches, trained at the
+preset's ``input_view_resolution``, the template's detail test). Per run: held-out PSNR,
 SSIM, masked PSNR and masked SSIM (within the union of the two silhouettes: blur does not win there),
 silhouette IoU; wall time of the template, colour init and training on this CPU (data preparation and
 evaluation excluded); Gaussian counts (start, end).
@@ -42,9 +45,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.common import RESULTS, save_result  # noqa: E402
+from stages.splat_optimize import SPEC  # noqa: E402
 
 SCAN = REPO.parent / "shared" / "fixtures" / "scans" / "renderpeople_rp_mei_posed_001"
 BACKGROUND = (0.3, 0.45, 0.6)
+DETAIL_SPACING = SPEC.params["detail_spacing"].default  # the stage's defaults
+INPUT_VIEW_SHARE = SPEC.params["input_view_share"].default
 HEIGHT, FOV, FILL, ELEVATION = 1.7, 33.8, 0.85, 10.0
 
 
@@ -134,10 +140,14 @@ def evaluate(human, subject: dict, tile_size: int) -> dict:
             "masked_ssim": round(float(m[3]), 4), "iou": round(float(m[4]), 4)}
 
 
-def run_fit(subject: dict, label: str, template: str, spacing: float | None = None, seed: int = 0) -> dict:
-    """One stage-equivalent fit with the cpu preset's settings; returns its row."""
+def run_fit(subject: dict, label: str, template: str, spacing: float | None = None, seed: int = 0,
+            detail_spacing: float = DETAIL_SPACING) -> dict:
+    """One stage-equivalent fit with the cpu preset's settings (the view at azimuth 0 as the input photo's:
+    its share of the batches, trained at the preset's ``input_view_resolution``, the template finer where it
+    shows detail); returns its row."""
     import torch
 
+    from humanvdm_core.frames import read_cameras
     from humanvdm_core.splat import human as H
     from humanvdm_core.splat.template import init_colors, start_anchor
 
@@ -146,9 +156,16 @@ def run_fit(subject: dict, label: str, template: str, spacing: float | None = No
     t0 = time.perf_counter()
     anchor = H.load_body_anchor(subject["root"] / "body" / "body.npz", preset["uv_resolution"])
     views = H.load_views(subject["root"] / "orbit", preset["train_resolution"])
+    cams = read_cameras(subject["root"] / "orbit")
+    input_view = H.input_view_index(cams.azimuth_deg)
+    photo_size = min(preset["input_view_resolution"], cams.width)
+    photo = (H.load_views(subject["root"] / "orbit", photo_size, [input_view])
+             if input_view >= 0 and photo_size > preset["train_resolution"] else None)
+    detail_view = photo if photo is not None else (views.subset([input_view]) if input_view >= 0 else None)
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
-    anchor, desc = start_anchor(anchor, views, template, spacing or preset["subject_spacing"], None, seed)
+    anchor, desc = start_anchor(anchor, views, template, spacing or preset["subject_spacing"], None, seed,
+                                detail_view, detail_spacing)
     human = H.GaussianHuman(anchor, seed=seed, learn_opacity=True)
     start = human.num_gaussians
     init_colors(human, views)
@@ -156,8 +173,9 @@ def run_fit(subject: dict, label: str, template: str, spacing: float | None = No
     initial_scores = evaluate(human, subject, preset["tile_size"])
     config = H.FitConfig(iterations=preset["iterations"], seed=seed, tile_size=preset["tile_size"],
                          coarse_fraction=preset["coarse_fraction"], densify_at=tuple(preset["densify_at"]),
-                         max_gaussians=preset["max_gaussians"])
-    result = H.fit_gaussians(human, views, config)
+                         max_gaussians=preset["max_gaussians"], input_view=input_view,
+                         input_view_share=INPUT_VIEW_SHARE)
+    result = H.fit_gaussians(human, views, config, photo=photo)
     row = {"subject": subject["name"], "run": label, "template": desc, "start_points": start,
            "num_gaussians": human.num_gaussians, "train_resolution": preset["train_resolution"],
            "iterations": preset["iterations"], "load_s": round(t_load, 1), "init_s": round(t_init, 1),
@@ -224,6 +242,7 @@ def bench_subject(name: str, render_size: int, eval_size: int, quick: bool) -> t
             notes = {"body": subject["body_source"], "prepare_s": round(time.perf_counter() - t0, 1)}
             rows.append(run_fit(subject, "body", "body"))
             rows.append(run_fit(subject, "subject", "subject"))
+            rows.append(run_fit(subject, "subject, even spacing", "subject", detail_spacing=1.0))
             if name != "synthetic" and not quick:
                 for spacing in (0.032, 0.022, 0.011):
                     rows.append(run_fit(subject, f"subject {1000 * spacing:g} mm apart", "subject", spacing))

@@ -7,7 +7,8 @@ view), ``body`` (``body.npz`` from ``fit-smpl``, schema ``humanvdm.body_fit`` v1
 (:mod:`humanvdm_core.splat.template`):
 
 - ``subject`` (``auto``'s choice): points ``subject_spacing`` apart on the subject's own surface (so a gown
-  gets more than a T-shirt) -- the clothed
+  gets more than a T-shirt), ``detail_spacing`` x that where the input photo shows detail (a face, a print,
+  a logo: :func:`humanvdm_core.splat.template.detail_points`) -- the clothed
   proxy when the orbit has one, else the visual hull of the frames' silhouettes merged with the body --
   each skinned and un-posed with its nearest body vertex, so a dress, a coat, long hair or a held object
   has Gaussians of its own;
@@ -68,6 +69,9 @@ SPEC = StageSpec(
                                   "UV map, as the paper), auto (subject)", choices=("auto", "subject", "body")),
         "subject_spacing": Param(0.0, "subject template: metres between its starting points (their count follows "
                                       "the subject's surface area); 0: from the preset"),
+        "detail_spacing": Param(0.5, "subject template: points this fraction of subject_spacing apart where the "
+                                     "input photo shows detail (a face, a print, a logo: local texture variation); "
+                                     "1: even spacing"),
         "uv_resolution": Param(0, "body template: UV map size R (Gaussian count ~0.62 R^2); 0: from the preset"),
         "init_colors": Param(True, "initialise colours in closed form (the frames projected onto the Gaussians, "
                                    "visibility-tested, averaged), so training starts from the person"),
@@ -148,6 +152,8 @@ def run(ctx: StageContext) -> None:
     s = resolve_settings(p, cuda)
     if p["turntable_views"] < 0 or p["turntable_size"] < 16:
         raise ConfigError("turntable_views must be >= 0 and turntable_size >= 16")
+    if not 0.0 < p["detail_spacing"] <= 1.0:
+        raise ConfigError(f"param detail_spacing must be in (0, 1], got {p['detail_spacing']}")
     if p["lpips_weights"]:  # fail before any work when the file is missing
         from humanvdm_core.errors import require_weights
 
@@ -164,7 +170,9 @@ def run(ctx: StageContext) -> None:
     photo = (H.load_views(ctx.inputs["frames"], photo_size, [input_view])
              if input_view >= 0 and photo_size > s["train_resolution"] else None)
     proxy = ctx.inputs["orbit"] / "proxy.npz" if "orbit" in ctx.inputs else None
-    anchor, template = start_anchor(anchor, views, p["template"], s["subject_spacing"], proxy, p["seed"])
+    detail_view = photo if photo is not None else (views.subset([input_view]) if input_view >= 0 else None)
+    anchor, template = start_anchor(anchor, views, p["template"], s["subject_spacing"], proxy, p["seed"],
+                                    detail_view, p["detail_spacing"])
     ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d² (the input view at %d²), %d iterations on %s",
                  s["preset"], template, len(anchor.positions), len(views.images), s["train_resolution"],
                  photo.size if photo is not None else s["train_resolution"], s["iterations"], device.type)

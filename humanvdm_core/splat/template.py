@@ -13,6 +13,12 @@ subject template starts from the subject's surface instead:
   points that lie deeper than :data:`HULL_CONCAVITY` voxels inside the hull (concavities no
   silhouette can carve, e.g. between the arms and the torso).
 
+Where the input photo shows detail (:func:`detail_mask`: its luminance varies within a window of about
+a spacing, inside the person -- a face, a print, a logo, a collar), the points are closer
+(:func:`detail_points`: sampled ``detail_spacing`` x ``spacing`` apart, kept where the photo sees them on
+its detail, thinned to ``spacing`` elsewhere), so the Gaussians can be as fine there as the photo is, and
+the plain cloth and the unseen side keep the even spacing.
+
 :func:`subject_anchor` turns such world points into a :class:`~humanvdm_core.splat.human.BodyAnchor`:
 each point takes the skinning weights of its nearest fitted-body vertex and is un-posed with them
 (inverse linear blend skinning), so pose refinement and LBS work as for the body template; its base
@@ -47,6 +53,9 @@ HULL_CONCAVITY = 3  # body points deeper than this many voxels inside the hull a
 ZBUFFER_SIZE = 128  # largest z-buffer resolution of the visibility test ...
 POINTS_PER_CELL = 3  # ... which aims at this many points of the near surface per cell
 VISIBLE_TOLERANCE = 0.03  # metres behind the nearest point that still count as visible
+DETAIL_WINDOW = 1.5  # the detail test's window, in spacings ...
+DETAIL_STD = 0.08  # ... and the luminance standard deviation over it above which the photo shows detail
+DETAIL_GROW = 1.0  # spacings by which the detail found is grown
 
 
 def posed_body(anchor) -> tuple[np.ndarray, np.ndarray]:
@@ -271,18 +280,66 @@ def project_colors(points: np.ndarray, views) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(colors, 0.0, 1.0).astype(np.float32), seen
 
 
-def start_anchor(anchor, views, template: str, spacing: float, proxy: Path | None, seed: int = 0):
+def detail_mask(view, spacing: float) -> np.ndarray:
+    """(S, S) bool: where the one-view ``view`` (the input photo's, a ``TrainingViews``) shows detail at
+    the scale of ``spacing``: the luminance's standard deviation over a window of :data:`DETAIL_WINDOW`
+    spacings (in that view's pixels at the subject's depth) above :data:`DETAIL_STD`, inside the person
+    (the window whole inside its mask, so the silhouette's edge against the background does not count),
+    then dilated by that window, so a face's skin between its eyes, brows and mouth counts too."""
+    import cv2
+
+    rgb = np.ascontiguousarray(view.images[0].cpu().numpy(), np.float32)
+    alpha = view.alphas[0].cpu().numpy()
+    w2c, K = view.w2c[0].cpu().numpy().astype(np.float64), view.K[0].cpu().numpy().astype(np.float64)
+    depth = float(np.linalg.norm(w2c[:3, 3]))  # the camera's distance to the world origin (the subject)
+    px = DETAIL_WINDOW * spacing * float(K[0, 0]) / max(depth, 1e-6)
+    window = max(3, 2 * int(round(px / 2)) + 1)
+    lum = rgb @ np.array([0.299, 0.587, 0.114], np.float32)
+    mean = cv2.boxFilter(lum, -1, (window, window))
+    std = np.sqrt(np.clip(cv2.boxFilter(lum * lum, -1, (window, window)) - mean * mean, 0.0, None))
+    inside = cv2.erode((alpha > 0.5).astype(np.uint8), np.ones((window, window), np.uint8)).astype(bool)
+    grow = np.ones((2 * int(round(DETAIL_GROW * px / DETAIL_WINDOW / 2)) + 1,) * 2, np.uint8)
+    return cv2.dilate(((std > DETAIL_STD) & inside).astype(np.uint8), grow).astype(bool) & (alpha > 0.5)
+
+
+def detail_points(points: np.ndarray, view, spacing: float) -> np.ndarray:
+    """``points`` (dense, about ``detail_spacing`` x ``spacing`` apart) kept where the input view ``view``
+    sees them on its :func:`detail_mask`, and thinned to ``spacing`` (:func:`poisson_disk`) elsewhere:
+    Gaussians as fine as the photo's detail where it has some (a face, a print, a logo), the even
+    spacing on plain cloth and on the unseen side."""
+    mask = detail_mask(view, spacing)
+    w2c, K = view.w2c[0].cpu().numpy().astype(np.float64), view.K[0].cpu().numpy().astype(np.float64)
+    seen, uv = visibility(points, w2c, K, view.size, zbuffer_size(len(points), float((view.alphas > 0.5).float().mean()), view.size))
+    px = np.clip(np.floor(uv).astype(np.int64), 0, view.size - 1)
+    fine = seen & mask[px[:, 1], px[:, 0]]
+    coarse = points[~fine]
+    return np.concatenate([points[fine], coarse[poisson_disk(coarse, DISK * spacing)]])
+
+
+def start_anchor(anchor, views, template: str, spacing: float, proxy: Path | None, seed: int = 0,
+                 detail_view=None, detail_spacing: float = 1.0):
     """(anchor, description) of the Gaussians' starting points: ``body``: the body anchor itself (UV texels);
     ``subject`` / ``auto``: points ``spacing`` apart on the clothed proxy ``proxy`` when that file exists,
-    else on the visual hull of ``views`` merged with the body (:func:`subject_anchor`)."""
+    else on the visual hull of ``views`` merged with the body (:func:`subject_anchor`). With
+    ``detail_view`` (the input photo's view) and ``detail_spacing`` < 1, the subject's points are
+    ``detail_spacing`` x ``spacing`` apart where that view shows detail (:func:`detail_points`)."""
     if template == "body":
         return anchor, "body (UV texels)"
     if template not in ("subject", "auto"):
         raise ValueError(f"template must be auto, subject or body, got {template!r}")
+    if not 0.0 < detail_spacing <= 1.0:
+        raise ValueError(f"detail_spacing must be in (0, 1], got {detail_spacing}")
+    fine = detail_view is not None and detail_spacing < 1.0
+    step = spacing * detail_spacing if fine else spacing
     if proxy is not None and Path(proxy).is_file():
-        return subject_anchor(anchor, proxy_points(proxy, spacing, seed)), "subject (clothed proxy)"
-    verts, _ = posed_body(anchor)
-    return subject_anchor(anchor, visual_hull_points(views, verts, spacing, seed)), "subject (visual hull + body)"
+        points, what = proxy_points(proxy, step, seed), "subject (clothed proxy)"
+    else:
+        verts, _ = posed_body(anchor)
+        points, what = visual_hull_points(views, verts, step, seed), "subject (visual hull + body)"
+    if fine:
+        points = detail_points(points, detail_view, spacing)
+        what += f", {detail_spacing:g} x spacing where the photo shows detail"
+    return subject_anchor(anchor, points), what
 
 
 def init_colors(human, views) -> int:
