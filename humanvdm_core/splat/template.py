@@ -285,7 +285,8 @@ def detail_mask(view, spacing: float) -> np.ndarray:
     the scale of ``spacing``: the luminance's standard deviation over a window of :data:`DETAIL_WINDOW`
     spacings (in that view's pixels at the subject's depth) above :data:`DETAIL_STD`, inside the person
     (the window whole inside its mask, so the silhouette's edge against the background does not count),
-    then dilated by that window, so a face's skin between its eyes, brows and mouth counts too."""
+    then grown by :data:`DETAIL_GROW` spacings, so a face's skin between its eyes, brows and mouth counts
+    too."""
     import cv2
 
     rgb = np.ascontiguousarray(view.images[0].cpu().numpy(), np.float32)
@@ -309,7 +310,8 @@ def detail_points(points: np.ndarray, view, spacing: float) -> np.ndarray:
     spacing on plain cloth and on the unseen side."""
     mask = detail_mask(view, spacing)
     w2c, K = view.w2c[0].cpu().numpy().astype(np.float64), view.K[0].cpu().numpy().astype(np.float64)
-    seen, uv = visibility(points, w2c, K, view.size, zbuffer_size(len(points), float((view.alphas > 0.5).float().mean()), view.size))
+    coverage = float((view.alphas > 0.5).float().mean())
+    seen, uv = visibility(points, w2c, K, view.size, zbuffer_size(len(points), coverage, view.size))
     px = np.clip(np.floor(uv).astype(np.int64), 0, view.size - 1)
     fine = seen & mask[px[:, 1], px[:, 0]]
     coarse = points[~fine]
