@@ -147,7 +147,6 @@ def run_fit(subject: dict, label: str, template: str, spacing: float | None = No
     shows detail); returns its row."""
     import torch
 
-    from humanvdm_core.frames import read_cameras
     from humanvdm_core.splat import human as H
     from humanvdm_core.splat.template import init_colors, start_anchor
 
@@ -156,12 +155,8 @@ def run_fit(subject: dict, label: str, template: str, spacing: float | None = No
     t0 = time.perf_counter()
     anchor = H.load_body_anchor(subject["root"] / "body" / "body.npz", preset["uv_resolution"])
     views = H.load_views(subject["root"] / "orbit", preset["train_resolution"])
-    cams = read_cameras(subject["root"] / "orbit")
-    input_view = H.input_view_index(cams.azimuth_deg)
-    photo_size = min(preset["input_view_resolution"], cams.width)
-    photo = (H.load_views(subject["root"] / "orbit", photo_size, [input_view])
-             if input_view >= 0 and photo_size > preset["train_resolution"] else None)
-    detail_view = photo if photo is not None else (views.subset([input_view]) if input_view >= 0 else None)
+    input_view, photo, detail_view = H.load_input_view(subject["root"] / "orbit", views,
+                                                       preset["input_view_resolution"])
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
     anchor, desc = start_anchor(anchor, views, template, spacing or preset["subject_spacing"], None, seed,

@@ -165,12 +165,8 @@ def run(ctx: StageContext) -> None:
     anchor = H.load_body_anchor(body_path, s["uv_resolution"], load_model=p["refine_pose"])
     views = H.load_views(ctx.inputs["frames"], s["train_resolution"])
     cameras = read_cameras(ctx.inputs["frames"])
-    input_view = H.input_view_index(cameras.azimuth_deg)
-    photo_size = min(s["input_view_resolution"], cameras.width)
-    photo = (H.load_views(ctx.inputs["frames"], photo_size, [input_view])
-             if input_view >= 0 and photo_size > s["train_resolution"] else None)
+    input_view, photo, detail_view = H.load_input_view(ctx.inputs["frames"], views, s["input_view_resolution"])
     proxy = ctx.inputs["orbit"] / "proxy.npz" if "orbit" in ctx.inputs else None
-    detail_view = photo if photo is not None else (views.subset([input_view]) if input_view >= 0 else None)
     anchor, template = start_anchor(anchor, views, p["template"], s["subject_spacing"], proxy, p["seed"],
                                     detail_view, p["detail_spacing"])
     ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d² (the input view at %d²), %d iterations on %s",

@@ -494,6 +494,23 @@ def load_views(root: str | Path, size: int, indices: list[int] | None = None) ->
     return prepare_views(np.stack(frames), cameras.subset(idx), size)
 
 
+def load_input_view(root: str | Path, views: TrainingViews, size: int,
+                    ) -> tuple[int, TrainingViews | None, TrainingViews | None]:
+    """The input photo's view of the frame set ``root`` whose training views are ``views``:
+    ``(index, photo, finest)``: its index (:func:`input_view_index`, -1 when no frame lies at azimuth 0);
+    ``photo``, that frame at ``size``² (at most the frames' own) when that is finer than ``views``, else
+    None; ``finest``, the finest copy of it there is (``photo``, else its training view; None without one)."""
+    from humanvdm_core.frames import read_cameras
+
+    cameras = read_cameras(root)
+    index = input_view_index(cameras.azimuth_deg)
+    if index < 0:
+        return index, None, None
+    size = min(size, cameras.width)
+    photo = load_views(root, size, [index]) if size > views.size else None
+    return index, photo, photo if photo is not None else views.subset([index])
+
+
 def prepare_views(frames: np.ndarray, cameras, size: int) -> TrainingViews:
     """Resample (N, H, W, 4) frames to ``size``² (area filter) and scale the cameras to match."""
     n, h, w = frames.shape[:3]
