@@ -279,7 +279,7 @@ def test_stage_templates_proxy_hull_and_body(subject, tmp_path):
     # by default 2 cm apart where the input view shows detail (here the striped shirt's front)
     assert logs["detail"]["template"] == "subject (clothed proxy), 0.5 x spacing where the photo shows detail"
     assert logs["detail"]["initial_gaussians"] > 1.2 * logs["proxy"]["initial_gaussians"]  # measured 1185 vs 924
-    assert logs["hull"]["template"].startswith("subject (visual hull + body)")
+    assert logs["hull"]["template"] == "subject (visual hull + body), 0.5 x spacing where the photo shows detail"
     assert logs["body"]["template"] == "body (UV texels)"
     assert "wall_s" not in logs["proxy"]  # timings are the lockfile's, not the artifact's
 
