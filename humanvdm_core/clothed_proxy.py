@@ -18,14 +18,18 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
    single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
    and the body behind it.
-4. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
+4. **Clothing over the torso.** The body is fitted inside the silhouette, so its torso is naked: where
+   the torso is the nearest (farthest) surface, that surface moves :data:`CLOTHING` towards (away from)
+   the camera, faded out over :data:`CLOTHING_FEATHER` of the grid (:func:`add_clothing`), so a shirt,
+   a sweater or a jacket has some thickness from the side and no ledge forms at the arms, hips or neck.
+5. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
    equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
    ankle: a long dress or coat hides the legs, whose fitted depth is then a guess) the mid-depth of
-   loose neighbourhoods comes instead, by ``looseness`` (step 5), from the extension of the body
+   loose neighbourhoods comes instead, by ``looseness`` (step 6), from the extension of the body
    where it is not loose (the torso the garment hangs from), so a gown hangs centred, not along
    guessed legs.
-5. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
+6. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller; a run ends where the body part changes, a pixel outside the body
    taking the part of the nearest body pixel in its row (:func:`row_nearest`), so a sleeve touching
@@ -36,13 +40,13 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
    skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness. ``T = 0``
    on the footprint's border, so front and back meet there.
-6. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
+7. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
    vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
-7. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
+8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
 
    * front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside,
      so no background colour smears onto the edge;
@@ -60,7 +64,7 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      (``facing_away``), the unseen side is the front and the head there takes the head's own
      median colour (no face is invented).
 
-8. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
+9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
 
 :class:`ClothedProxy` holds the mesh, the per-vertex skinning, which sheet each vertex is on, and
@@ -92,6 +96,8 @@ SKIN_INFLUENCES = 4
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
+CLOTHING = 0.02  # metres clothes add to the torso's depth, in front and behind (the fitted body is naked) ...
+CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
 SPIKE_DEPTH = 0.08  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
@@ -414,7 +420,7 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
                         back_side: np.ndarray | None = None) -> np.ndarray:
-    """The colour of the unseen side per input-view pixel (contract step 6, "back"): per body part, the
+    """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
     objects narrower than half the part are not carried over; with ``front_side`` / ``back_side`` (the
@@ -501,6 +507,17 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
 
 # ----------------------------------------------------------------------------- the proxy
 
+def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
+    """Move the body's nearest surface :data:`CLOTHING` towards the camera where it is the torso, and its
+    farthest surface as far away where that is the torso, each faded out over :data:`CLOTHING_FEATHER`
+    of the ``grid`` (a Gaussian of the torso's indicator), so no ledge forms where an arm crosses the
+    torso or the torso meets the hips and the neck. In place on ``maps["front"]`` / ``maps["back"]``."""
+    k = max(3, int(CLOTHING_FEATHER * grid) | 1)
+    for key, sign in (("front", -1.0), ("back", 1.0)):
+        torso = ((maps[key + "_part"] == PARTS.index("torso")) & body).astype(np.float32)
+        maps[key] = maps[key] + sign * CLOTHING * cv2.GaussianBlur(torso, (k, k), 0) * body
+
+
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
@@ -544,6 +561,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         shift = np.where(arm, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
         maps["front"] = maps["front"] + shift
         maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
+    add_clothing(maps, body, g)
     mid_body = 0.5 * (maps["front"] + maps["back"])
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
     t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)

@@ -385,3 +385,36 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
     assert z.max() >= 0.15 + ARM_REACH - 0.03
     torso = proxy.front & (np.abs(proxy.mesh.vertices[:, 1] + 0.4) < 0.05)  # the torso's front well below the arm
     assert abs(float(np.median(z[torso])) - 0.15) < 0.03
+
+
+def test_clothing_gives_the_torso_thickness_and_leaves_the_head_alone():
+    """The cylinder "body" (0.3 m thick) in its own mask: from the side the proxy's torso is 2 * CLOTHING
+    thicker than the body (a naked fit wears a shirt), the head keeps the body's thickness, and the
+    thickness changes smoothly where they meet (no ledge)."""
+    import trimesh
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import CLOTHING, build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    v, f, _, names = _cylinder_body()
+    v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=0.04)  # parts follow the vertices, not long faces
+    w = np.stack([v[:, 1] < 0.6, v[:, 1] >= 0.6], axis=1).astype(np.float64)
+    size = 160
+    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    mask = render_views(TexturedMesh(v, f), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
+    proxy = build_clothed_proxy(v, f, w, names, cam, np.full((size, size, 3), 0.5, np.float32), mask, grid=size)
+    p = proxy.mesh.vertices
+    centre = np.abs(p[:, 0]) < 0.03  # the column through the middle of the front view
+
+    def thickness(y: float) -> float:
+        row = centre & (np.abs(p[:, 1] - y) < 0.03)
+        return float(p[row, 2].max() - p[row, 2].min())
+
+    assert abs(thickness(0.0) - (0.3 + 2 * CLOTHING)) < 0.012, thickness(0.0)  # the torso
+    assert abs(thickness(0.75) - 0.3) < 0.012, thickness(0.75)  # the head, 0.15 m above the torso
+    ys = np.linspace(0.3, 0.75, 16)
+    steps = np.abs(np.diff([thickness(y) for y in ys]))
+    assert steps.max() < 0.6 * 2 * CLOTHING, steps  # faded, not a ledge at the part boundary (y = 0.6)
