@@ -18,10 +18,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
    single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
    and the body behind it.
-4. **Clothing over the torso.** The body is fitted inside the silhouette, so its torso is naked: where
-   the torso is the nearest (farthest) surface, that surface moves :data:`CLOTHING` towards (away from)
-   the camera, faded out over :data:`CLOTHING_FEATHER` of the grid (:func:`add_clothing`), so a shirt,
-   a sweater or a jacket has some thickness from the side and no ledge forms at the arms, hips or neck.
+4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
+   feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
+   (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of
+   the grid (:func:`add_clothing`), so a shirt, a sweater or a jacket has some thickness from the side,
+   shoes are longer than bare feet, and no ledge forms at the arms, hips, neck or ankles.
 5. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
    equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
@@ -96,7 +97,8 @@ SKIN_INFLUENCES = 4
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
-CLOTHING = 0.02  # metres clothes add to the torso's depth, in front and behind (the fitted body is naked) ...
+# metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
+CLOTHING = {"torso": 0.02, "feet": 0.025}
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
 SPIKE_DEPTH = 0.08  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
@@ -508,14 +510,18 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
 # ----------------------------------------------------------------------------- the proxy
 
 def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
-    """Move the body's nearest surface :data:`CLOTHING` towards the camera where it is the torso, and its
-    farthest surface as far away where that is the torso, each faded out over :data:`CLOTHING_FEATHER`
-    of the ``grid`` (a Gaussian of the torso's indicator), so no ledge forms where an arm crosses the
-    torso or the torso meets the hips and the neck. In place on ``maps["front"]`` / ``maps["back"]``."""
+    """Move the body's nearest surface towards the camera by ``CLOTHING[part]`` where it is that part (the
+    torso: a shirt or a jacket; the feet: shoes), and its farthest surface as far away where that is the
+    part, each faded out over :data:`CLOTHING_FEATHER` of the ``grid`` (a Gaussian of the part's
+    indicator), so no ledge forms where an arm crosses the torso or the torso meets the hips and the
+    neck. In place on ``maps["front"]`` / ``maps["back"]``."""
     k = max(3, int(CLOTHING_FEATHER * grid) | 1)
     for key, sign in (("front", -1.0), ("back", 1.0)):
-        torso = ((maps[key + "_part"] == PARTS.index("torso")) & body).astype(np.float32)
-        maps[key] = maps[key] + sign * CLOTHING * cv2.GaussianBlur(torso, (k, k), 0) * body
+        margin = np.zeros(body.shape, np.float32)
+        for part, metres in CLOTHING.items():
+            inside = ((maps[key + "_part"] == PARTS.index(part)) & body).astype(np.float32)
+            margin += metres * cv2.GaussianBlur(inside, (k, k), 0)
+        maps[key] = maps[key] + sign * margin * body
 
 
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,

@@ -387,10 +387,10 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
     assert abs(float(np.median(z[torso])) - 0.15) < 0.03
 
 
-def test_clothing_gives_the_torso_thickness_and_leaves_the_head_alone():
-    """The cylinder "body" (0.3 m thick) in its own mask: from the side the proxy's torso is 2 * CLOTHING
-    thicker than the body (a naked fit wears a shirt), the head keeps the body's thickness, and the
-    thickness changes smoothly where they meet (no ledge)."""
+def test_clothes_and_shoes_give_the_torso_and_feet_thickness_and_leave_the_head_alone():
+    """The cylinder "body" (0.3 m thick) in its own mask: from the side the proxy's torso is 2 * CLOTHING["torso"]
+    thicker than the body (a naked fit wears a shirt), its "foot" 2 * CLOTHING["feet"] (shoes), the head keeps
+    the body's thickness, and the thickness changes smoothly where they meet (no ledge)."""
     import trimesh
 
     from humanvdm_core.cameras import orbit_cameras
@@ -401,7 +401,8 @@ def test_clothing_gives_the_torso_thickness_and_leaves_the_head_alone():
     torch.set_num_threads(1)
     v, f, _, names = _cylinder_body()
     v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=0.04)  # parts follow the vertices, not long faces
-    w = np.stack([v[:, 1] < 0.6, v[:, 1] >= 0.6], axis=1).astype(np.float64)
+    w = np.stack([(v[:, 1] >= -0.6) & (v[:, 1] < 0.6), v[:, 1] >= 0.6, v[:, 1] < -0.6], axis=1).astype(np.float64)
+    names = [*names, "foot.L"]  # the bottom 0.2 m is a "foot"
     size = 160
     cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
     mask = render_views(TexturedMesh(v, f), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
@@ -413,8 +414,10 @@ def test_clothing_gives_the_torso_thickness_and_leaves_the_head_alone():
         row = centre & (np.abs(p[:, 1] - y) < 0.03)
         return float(p[row, 2].max() - p[row, 2].min())
 
-    assert abs(thickness(0.0) - (0.3 + 2 * CLOTHING)) < 0.012, thickness(0.0)  # the torso
+    clothes = CLOTHING["torso"]
+    assert abs(thickness(0.0) - (0.3 + 2 * clothes)) < 0.012, thickness(0.0)  # the torso
     assert abs(thickness(0.75) - 0.3) < 0.012, thickness(0.75)  # the head, 0.15 m above the torso
+    assert abs(thickness(-0.75) - (0.3 + 2 * CLOTHING["feet"])) < 0.012, thickness(-0.75)  # shoes
     ys = np.linspace(0.3, 0.75, 16)
     steps = np.abs(np.diff([thickness(y) for y in ys]))
-    assert steps.max() < 0.6 * 2 * CLOTHING, steps  # faded, not a ledge at the part boundary (y = 0.6)
+    assert steps.max() < 0.6 * 2 * clothes, steps  # faded, not a ledge at the part boundary (y = 0.6)
