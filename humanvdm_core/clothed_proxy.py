@@ -513,8 +513,8 @@ def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
     """Move the body's nearest surface towards the camera by ``CLOTHING[part]`` where it is that part (the
     torso: a shirt or a jacket; the feet: shoes), and its farthest surface as far away where that is the
     part, each faded out over :data:`CLOTHING_FEATHER` of the ``grid`` (a Gaussian of the part's
-    indicator), so no ledge forms where an arm crosses the torso or the torso meets the hips and the
-    neck. In place on ``maps["front"]`` / ``maps["back"]``."""
+    indicator), so no ledge forms where an arm crosses the torso, the torso meets the hips and the neck,
+    or the feet meet the legs. In place on ``maps["front"]`` / ``maps["back"]``."""
     k = max(3, int(CLOTHING_FEATHER * grid) | 1)
     for key, sign in (("front", -1.0), ("back", 1.0)):
         margin = np.zeros(body.shape, np.float32)
