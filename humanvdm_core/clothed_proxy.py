@@ -58,7 +58,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      not carried over; arms and legs take their medians per side of the body (what one hand holds
      stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
      the torso and the legs take one median per row, so the garment's own hem decides, not the
-     body's waist line; hands keep their own colour;
+     body's waist line; a torso row that shows clothing beside skin of the face's colour
+     (:func:`face_colour`, :data:`NECKLINE_SHARE`: a V-neck, an open shirt) takes the clothing's
+     median only, since a top covers more of the back than of the front; hands keep their own colour;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
      shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
      in the photo, so no face appears on the back; when the photo shows the person's back
@@ -93,6 +95,9 @@ LOOSE_RANGE = (0.15, 0.45)  # ... how much to inflate: none below the first shar
 BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
+SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
+SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
+NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back
 SKIN_INFLUENCES = 4
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
@@ -399,17 +404,34 @@ def median_colour(pixels: np.ndarray) -> np.ndarray:
     return pixels[order[lo:hi]].mean(axis=0)
 
 
-def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
+def skin_like(image: np.ndarray, skin: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels of about the colour ``skin`` (3,) -- chromaticity within :data:`SKIN_CHROMA`,
+    brightness within :data:`SKIN_BRIGHTNESS` of it, so a shadowed neck still counts."""
+    total = image.sum(axis=2, keepdims=True) + 1e-3
+    ref = np.asarray(skin, np.float32)
+    chroma = np.linalg.norm(image / total - ref / (ref.sum() + 1e-3), axis=2)
+    ratio = image.mean(axis=2) / max(float(ref.mean()), 1e-3)
+    return (chroma < SKIN_CHROMA) & (ratio > SKIN_BRIGHTNESS[0]) & (ratio < SKIN_BRIGHTNESS[1])
+
+
+def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.ndarray | None = None,
+                share: float = NECKLINE_SHARE) -> np.ndarray:
     """(H, C): per image row, the median colour (:func:`median_colour`) of the ``select``ed pixels within
-    ``band`` rows of it (rows with none take the nearest row that has some)."""
+    ``band`` rows of it (rows with none take the nearest row that has some); with ``prefer`` (a subset of
+    ``select``), only of those where they are at least ``share`` of the row's."""
     h = image.shape[0]
     out = np.full((h, image.shape[2]), np.nan, np.float32)
     counts = select.sum(axis=1)
+    preferred = prefer.sum(axis=1) if prefer is not None else None
     for y in range(h):
         y0, y1 = max(0, y - band), min(h, y + band + 1)
-        if counts[y0:y1].sum() == 0:
+        n = counts[y0:y1].sum()
+        if n == 0:
             continue
-        out[y] = median_colour(image[y0:y1][select[y0:y1]])
+        if preferred is not None and preferred[y0:y1].sum() >= max(1, share * n):
+            out[y] = median_colour(image[y0:y1][prefer[y0:y1]])
+        else:
+            out[y] = median_colour(image[y0:y1][select[y0:y1]])
     have = np.nonzero(np.isfinite(out[:, 0]))[0]
     if len(have) == 0:
         return np.zeros_like(out)
@@ -421,7 +443,7 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int) -> np.ndarray:
 
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
-                        back_side: np.ndarray | None = None) -> np.ndarray:
+                        back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -429,10 +451,14 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     body's side per pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the
     torso and the legs share one median per row where both the nearest and the farthest surface are
     one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
-    the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour)."""
+    the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
+    With ``skin_colour`` (the face's), a torso row that shows clothing beside skin (a V-neck, a low or
+    open neckline, an open shirt) takes the clothing's colour only: a top covers more of the back than
+    of the front."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
+    clothed = ~skin_like(photo, skin_colour) if skin_colour is not None else None
     out = nearest_fill(photo, person).astype(np.float32)
     # the back of the neck behind a collar or a shoulder is the clothing's, not the hair's: the head's
     # colour goes only behind what the photo shows as the head
@@ -449,7 +475,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         elif PARTS[p] == "hands":
             out[want] = nearest_fill(photo, source)[want]  # skin keeps its own colour
         else:
-            per_row = row_medians(photo, source, band)
+            prefer = source & clothed if clothed is not None and PARTS[p] == "torso" else None
+            per_row = row_medians(photo, source, band, prefer)
             out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
             if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
                 # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
@@ -465,7 +492,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     source = person & np.isin(front_part, trunk)
     same = np.isin(front_part, trunk) & np.isin(back_part, trunk)
     if source.sum() >= 4 and same.any():
-        per_row = row_medians(photo, source, band)
+        per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None)
         out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
     torso = person & (front_part == PARTS.index("torso"))
     if head_colour is not None and torso.sum() >= 16:
@@ -474,6 +501,18 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
             hair = hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
             out[hair & (back_part != PARTS.index("hands"))] = head_colour
     return out
+
+
+def face_colour(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray,
+                hair: np.ndarray | None) -> np.ndarray | None:
+    """The face's skin colour: the median colour (:func:`median_colour`) of the head's pixels in the
+    photo that are not of about the ``hair`` colour (:data:`HAIR_DISTANCE`); None without a hair colour
+    or with fewer than 32 such pixels (a photo from behind, a tiny head)."""
+    if hair is None:
+        return None
+    head = (mask > 0.5) & (front_part == PARTS.index("head"))
+    face = head & (np.linalg.norm(photo - np.asarray(hair, np.float32)[None, None], axis=2) > HAIR_DISTANCE)
+    return median_colour(photo[face]) if face.sum() >= 32 else None
 
 
 def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:
@@ -645,6 +684,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     fp = nearest_fill(fp, known).astype(np.int64) if known.any() else np.zeros_like(fp, np.int64)
     bknown = bp >= 0
     bp = np.where(bknown, bp, fp).astype(np.int64)
+    skin = face_colour(front_tex, mask, fp, head_colour)  # before the head's own colour stands in for hair
     if head_colour is None:
         head_pixels = (fp == PARTS.index("head")) & (mask > 0.5)
         head_colour = np.median(front_tex[head_pixels], axis=0) if head_pixels.any() else None
@@ -652,7 +692,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bs = cv2.resize(maps["back_side"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
     fs = nearest_fill(fs, known).astype(np.int64) if known.any() else np.zeros_like(fs, np.int64)
     bs = np.where(bknown, bs, fs).astype(np.int64)
-    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs)
+    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = (cols + 0.5) * to_full / size
     v = 1.0 - (rows + 0.5) * to_full / size

@@ -9,6 +9,7 @@ import torch
 
 from humanvdm_core.clothed_proxy import (
     PARTS,
+    face_colour,
     harmonic_extension,
     median_colour,
     nearest_fill,
@@ -116,6 +117,35 @@ def test_what_one_arm_holds_stays_off_the_other_arms_back():
     assert np.allclose(per_side[40, 85], sleeve, atol=0.05)
     assert np.allclose(per_side[40, 20], folder, atol=0.05)  # the holding arm itself: its own pixels
     assert list(side_of_joints(["upperarm01.L", "upperarm01.R", "spine01", "left_knee", "right_elbow"])) == [1, -1, 0, 1, -1]
+
+
+def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
+    """A white shirt with a V-neck down to row 40 (skin between the shirt's two sides) and a bare-chested
+    strip (rows 70-80, skin across the whole torso, as under a crop top). With the face's skin colour the
+    back of the V's rows is the shirt; where the front shows only skin, the back stays skin; without a
+    skin colour the V's rows take the median of all their pixels (skin, as before)."""
+    size = 100
+    shirt, skin = np.array((0.93, 0.93, 0.93), np.float32), np.array((0.85, 0.62, 0.5), np.float32)
+    hair = np.array((0.15, 0.1, 0.08), np.float32)
+    photo = np.zeros((size, size, 3), np.float32)
+    photo[:] = shirt
+    for y in range(10, 40):  # the V: 60 px wide at row 10, closing at row 40; the shirt 20 px each side
+        half = int(30 * (40 - y) / 30)
+        photo[y, 50 - half:50 + half] = skin * (0.8 if y < 20 else 1.0)  # the neck in shadow
+    photo[70:80] = skin
+    photo[:8] = hair
+    photo[2:8, 40:60] = skin  # the face below the hair
+    mask = np.ones((size, size), np.float32)
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:8] = PARTS.index("head")
+    face = face_colour(photo, mask, part, hair)
+    assert face is not None and np.allclose(face, skin, atol=0.02)
+    assert face_colour(photo, mask, part, None) is None
+    out = unseen_side_colours(photo, mask, part, part, hair, skin_colour=face)
+    plain = unseen_side_colours(photo, mask, part, part, hair)
+    assert np.allclose(out[14, 50], shirt, atol=0.05)  # the back of the V's top rows: the shirt
+    assert np.linalg.norm(plain[14, 50] - shirt) > 0.2  # ... where all their pixels give skin
+    assert np.allclose(out[75, 50], skin, atol=0.05)  # skin all across the front: skin at the back
 
 
 def test_harmonic_extension_and_nearest_fill():
