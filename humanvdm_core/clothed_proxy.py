@@ -17,7 +17,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`ARM_REACH` in front of the nearest surface of the body without its arms (fading out over
    :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
    single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
-   and the body behind it.
+   and the body behind it. A hand's depth is its mean over :data:`HAND_SMOOTH` of the grid
+   (:func:`smooth_hands`): the photo does not show the fingers' depth, and the fitted fingers' relief
+   would stand out from the side as shards.
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
    feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
    (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of
@@ -105,7 +107,8 @@ ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane)
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
 CLOTHING = {"torso": 0.02, "feet": 0.025}
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
-SPIKE_DEPTH = 0.08  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
+SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
+HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -563,6 +566,22 @@ def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
         maps[key] = maps[key] + sign * margin * body
 
 
+def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
+    """Replace the depth of the hands' nearest (farthest) surface by its mean over the hand's pixels
+    within :data:`HAND_SMOOTH` of the ``grid``: a photo does not show its fingers' depth, and the fitted
+    fingers' own relief, a few centimetres from pixel to pixel, stands out from the side as shards. In
+    place on ``maps["front"]`` / ``maps["back"]``."""
+    k = max(3, int(HAND_SMOOTH * grid) | 1)
+    for key in ("front", "back"):
+        hand = ((maps[key + "_part"] == PARTS.index("hands")) & body).astype(np.float32)
+        if not hand.any():
+            continue
+        total = cv2.boxFilter(np.where(hand > 0, maps[key], 0.0).astype(np.float32), -1, (k, k), normalize=False)
+        count = cv2.boxFilter(hand, -1, (k, k), normalize=False)
+        maps[key] = np.where(hand > 0, total / np.maximum(count, 1.0), maps[key])
+    maps["back"] = np.where(body, np.maximum(maps["back"], maps["front"]), maps["back"])
+
+
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
@@ -607,6 +626,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         maps["front"] = maps["front"] + shift
         maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
     add_clothing(maps, body, g)
+    smooth_hands(maps, body, g)
     mid_body = 0.5 * (maps["front"] + maps["back"])
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
     t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)

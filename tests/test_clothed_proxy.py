@@ -16,6 +16,7 @@ from humanvdm_core.clothed_proxy import (
     remove_spikes,
     row_medians,
     run_halfdepth,
+    smooth_hands,
     unseen_side_colours,
 )
 
@@ -51,8 +52,9 @@ def test_a_sleeve_touching_the_torso_is_as_thick_as_the_sleeve_not_as_the_row():
 
 
 def test_remove_spikes_flattens_one_stray_pixel_and_keeps_real_steps():
-    """One pixel of a sheet 0.4 m in front of its neighbours (a stray rasterised depth) is a spike from
-    the side and goes; an arm-sized block 0.12 m in front of the body is kept."""
+    """One pixel of a sheet 0.4 m in front of its neighbours (a stray rasterised depth) and one 5 cm in
+    front (a finger's edge pixel) are spikes from the side and go; an arm-sized block 0.12 m in front
+    of the body is kept."""
     domain = np.zeros((60, 60), bool)
     domain[5:55, 5:55] = True
     border = domain & ~np.pad(np.ones((48, 48), bool), 6)
@@ -60,8 +62,11 @@ def test_remove_spikes_flattens_one_stray_pixel_and_keeps_real_steps():
     half = np.where(domain & ~border, 0.1, 0.0)
     mid[30, 30] -= 0.2
     half[30, 30] += 0.2  # front sheet 0.4 m out at one pixel
+    mid[20, 15] -= 0.025
+    half[20, 15] += 0.025  # front sheet 5 cm out at another
     mid[10:30, 40:50] -= 0.12  # a block in front: a real step
     new_mid, new_half = remove_spikes(mid, half, domain, border)
+    assert abs((new_mid - new_half)[20, 15] - 2.9) < 1e-6
     assert abs((new_mid - new_half)[30, 30] - 2.9) < 1e-6 and abs((new_mid + new_half)[30, 30] - 3.1) < 1e-6
     assert np.allclose(new_mid[12:28, 42:48], 2.88) and np.allclose(new_half[border], 0.0)
 
@@ -146,6 +151,27 @@ def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
     assert np.allclose(out[14, 50], shirt, atol=0.05)  # the back of the V's top rows: the shirt
     assert np.linalg.norm(plain[14, 50] - shirt) > 0.2  # ... where all their pixels give skin
     assert np.allclose(out[75, 50], skin, atol=0.05)  # skin all across the front: skin at the back
+
+
+def test_smooth_hands_flattens_the_fingers_relief_and_leaves_the_rest():
+    """A hand (rows 40-60) whose fitted depth has a +-3 cm finger relief from pixel to pixel, on a flat
+    torso: after smoothing, the relief inside the hand is under a third of what it was, the hand's mean
+    depth is kept, the torso is untouched and the back stays behind the front."""
+    size = 100
+    rng = np.random.default_rng(0)
+    front = np.full((size, size), 3.0)
+    front[40:60, 40:60] += 0.1 + rng.choice([-0.03, 0.03], size=(20, 20))  # the hand: 10 cm behind, with relief
+    back = front + 0.05
+    part = np.full((size, size), PARTS.index("torso"))
+    part[40:60, 40:60] = PARTS.index("hands")
+    body = np.ones((size, size), bool)
+    maps = {"front": front.copy(), "back": back.copy(), "front_part": part, "back_part": part}
+    smooth_hands(maps, body, 288)
+    inner = (slice(44, 56), slice(44, 56))
+    assert maps["front"][inner].std() < front[inner].std() / 3
+    assert abs(maps["front"][40:60, 40:60].mean() - front[40:60, 40:60].mean()) < 0.005
+    assert np.array_equal(maps["front"][:40], front[:40])
+    assert np.all(maps["back"] >= maps["front"])
 
 
 def test_harmonic_extension_and_nearest_fill():
