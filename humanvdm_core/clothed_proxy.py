@@ -488,12 +488,12 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
                     if own.any() and own_source.sum() >= 4:
                         per_row = row_medians(photo, own_source, band)
                         out[own] = np.broadcast_to(per_row[:, None, :], photo.shape)[own]
-    # where the torso or the legs are both the nearest and the farthest surface, the garments' own hem
-    # (a shirt over the hips, a dress over the thighs) decides, not the body's waist line: one median
-    # per row over the torso and the legs together
+    # where the torso or the legs are the farthest surface and the nearest one too (or an arm or a hand
+    # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
+    # not the body's waist line: one median per row over the torso and the legs together
     trunk = [PARTS.index("torso"), PARTS.index("legs")]
     source = person & np.isin(front_part, trunk)
-    same = np.isin(front_part, trunk) & np.isin(back_part, trunk)
+    same = np.isin(front_part, trunk + [PARTS.index("arms"), PARTS.index("hands")]) & np.isin(back_part, trunk)
     if source.sum() >= 4 and same.any():
         per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None)
         out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]

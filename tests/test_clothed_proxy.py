@@ -73,8 +73,9 @@ def test_remove_spikes_flattens_one_stray_pixel_and_keeps_real_steps():
 
 def test_the_unseen_side_follows_the_garments_hem_and_the_neck_takes_the_collars_colour():
     """Back pixels where the body's waist line (legs below it) lies above the shirt's hem take the
-    shirt's colour, not the trousers' at the sides of those rows; the back of the neck behind the
-    collar takes the shirt's colour, not the hair's."""
+    shirt's colour, not the trousers' at the sides of those rows -- also behind a hand held before the
+    hips, whose own pixels show what it holds; the back of the neck behind the collar takes the
+    shirt's colour, not the hair's."""
     size = 100
     shirt, trousers, face, hair = (0.9, 0.9, 0.9), (0.1, 0.1, 0.3), (0.8, 0.6, 0.5), (0.2, 0.1, 0.0)
     photo = np.zeros((size, size, 3), np.float32)
@@ -91,8 +92,11 @@ def test_the_unseen_side_follows_the_garments_hem_and_the_neck_takes_the_collars
     back = front.copy()
     back[45:60, 30:70] = PARTS.index("legs")  # the body's waist line from behind: above the hem
     back[20:25, 45:55] = PARTS.index("head")  # the neck behind the collar
+    front[50:58, 60:66] = PARTS.index("hands")  # a hand before the hips, holding something dark
+    photo[50:58, 60:66] = (0.2, 0.2, 0.2)
     out = unseen_side_colours(photo, mask, front, back, np.asarray(hair, np.float32))
     assert np.allclose(out[55, 50], shirt, atol=0.05)  # legs by the body, shirt by the photo
+    assert np.allclose(out[54, 63], shirt, atol=0.05)  # ... behind the hand too
     assert np.allclose(out[80, 50], trousers, atol=0.05)
     assert np.allclose(out[22, 50], shirt, atol=0.05)  # the neck behind the collar
     assert np.allclose(out[10, 50], hair, atol=0.05)  # the head's back
