@@ -60,9 +60,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      not carried over; arms and legs take their medians per side of the body (what one hand holds
      stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
      the torso and the legs take one median per row, so the garment's own hem decides, not the
-     body's waist line; a torso row that shows clothing beside skin of the face's colour
-     (:func:`face_colour`, :data:`NECKLINE_SHARE`: a V-neck, an open shirt) takes the clothing's
-     median only, since a top covers more of the back than of the front; hands keep their own colour;
+     body's waist line; a torso row of the neckline (:data:`NECKLINE_DEPTH` below the shoulders' top)
+     that shows clothing beside skin of the face's colour (:func:`face_colour`, :data:`NECKLINE_SHARE`:
+     a V-neck) takes the clothing's median only, since a top covers more of the back than of the
+     front; hands keep their own colour;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
      shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
      in the photo, so no face appears on the back; when the photo shows the person's back
@@ -99,7 +100,8 @@ PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
-NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back
+NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
+NECKLINE_DEPTH = 0.15  # ... in the rows from the shoulders' top down this fraction of the person's height
 SKIN_INFLUENCES = 4
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
@@ -418,10 +420,11 @@ def skin_like(image: np.ndarray, skin: np.ndarray) -> np.ndarray:
 
 
 def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.ndarray | None = None,
-                share: float = NECKLINE_SHARE) -> np.ndarray:
+                share: float = NECKLINE_SHARE, prefer_rows: tuple[int, int] | None = None) -> np.ndarray:
     """(H, C): per image row, the median colour (:func:`median_colour`) of the ``select``ed pixels within
     ``band`` rows of it (rows with none take the nearest row that has some); with ``prefer`` (a subset of
-    ``select``), only of those where they are at least ``share`` of the row's."""
+    ``select``) and in the rows ``prefer_rows`` (start, stop; all without), only of those where they are
+    at least ``share`` of the row's."""
     h = image.shape[0]
     out = np.full((h, image.shape[2]), np.nan, np.float32)
     counts = select.sum(axis=1)
@@ -431,7 +434,8 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.nda
         n = counts[y0:y1].sum()
         if n == 0:
             continue
-        if preferred is not None and preferred[y0:y1].sum() >= max(1, share * n):
+        if (preferred is not None and (prefer_rows is None or prefer_rows[0] <= y < prefer_rows[1])
+                and preferred[y0:y1].sum() >= max(1, share * n)):
             out[y] = median_colour(image[y0:y1][prefer[y0:y1]])
         else:
             out[y] = median_colour(image[y0:y1][select[y0:y1]])
@@ -455,13 +459,20 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     torso and the legs share one median per row where both the nearest and the farthest surface are
     one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
     the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
-    With ``skin_colour`` (the face's), a torso row that shows clothing beside skin (a V-neck, a low or
-    open neckline, an open shirt) takes the clothing's colour only: a top covers more of the back than
-    of the front."""
+    With ``skin_colour`` (the face's), a torso row of the neckline (from the top of the shoulders, the
+    highest arm pixel, down :data:`NECKLINE_DEPTH` of the person's height) that shows clothing beside
+    skin (a V-neck, a low or open neckline) takes the clothing's colour only: a top covers more of the
+    back than of the front, up to the neck."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
     clothed = ~skin_like(photo, skin_colour) if skin_colour is not None else None
+    # ... in the neckline's rows: from the top of the shoulders (above it the neck is bare at the back as
+    # in front) down NECKLINE_DEPTH of the person's height (below it a hem's rows keep their plain median)
+    arm_rows = np.nonzero((person & (front_part == PARTS.index("arms"))).any(axis=1))[0]
+    rows = np.nonzero(person.any(axis=1))[0]
+    top = int(arm_rows.min()) if len(arm_rows) else 0
+    neckline = (top, top + int(NECKLINE_DEPTH * (rows.max() - rows.min() + 1))) if len(rows) else None
     out = nearest_fill(photo, person).astype(np.float32)
     # the back of the neck behind a collar or a shoulder is the clothing's, not the hair's: the head's
     # colour goes only behind what the photo shows as the head
@@ -479,7 +490,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
             out[want] = nearest_fill(photo, source)[want]  # skin keeps its own colour
         else:
             prefer = source & clothed if clothed is not None and PARTS[p] == "torso" else None
-            per_row = row_medians(photo, source, band, prefer)
+            per_row = row_medians(photo, source, band, prefer, prefer_rows=neckline)
             out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
             if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
                 # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
@@ -495,7 +506,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     source = person & np.isin(front_part, trunk)
     same = np.isin(front_part, trunk + [PARTS.index("arms"), PARTS.index("hands")]) & np.isin(back_part, trunk)
     if source.sum() >= 4 and same.any():
-        per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None)
+        per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,
+                              prefer_rows=neckline)
         out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
     torso = person & (front_part == PARTS.index("torso"))
     if head_colour is not None and torso.sum() >= 16:

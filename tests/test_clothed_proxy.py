@@ -129,10 +129,14 @@ def test_what_one_arm_holds_stays_off_the_other_arms_back():
 
 
 def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
-    """A white shirt with a V-neck down to row 40 (skin between the shirt's two sides) and a bare-chested
-    strip (rows 70-80, skin across the whole torso, as under a crop top). With the face's skin colour the
-    back of the V's rows is the shirt; where the front shows only skin, the back stays skin; without a
-    skin colour the V's rows take the median of all their pixels (skin, as before)."""
+    """A white shirt (arms from row 10: the shoulders' top) with a V-neck down to row 40 (skin between the
+    shirt's two sides), a wide opening at rows 50-60 (60 % skin, below the neckline's rows) and a
+    bare-chested strip (rows 70-80, skin across the whole torso, as under a crop top). With the face's
+    skin colour the back of the V's rows within NECKLINE_DEPTH of the shoulders is the shirt; below them,
+    and where the front shows only skin, the back takes the row's median as before; without a skin
+    colour the V's rows take the median of all their pixels (skin)."""
+    from humanvdm_core.clothed_proxy import NECKLINE_DEPTH
+
     size = 100
     shirt, skin = np.array((0.93, 0.93, 0.93), np.float32), np.array((0.85, 0.62, 0.5), np.float32)
     hair = np.array((0.15, 0.1, 0.08), np.float32)
@@ -141,19 +145,23 @@ def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
     for y in range(10, 40):  # the V: 60 px wide at row 10, closing at row 40; the shirt 20 px each side
         half = int(30 * (40 - y) / 30)
         photo[y, 50 - half:50 + half] = skin * (0.8 if y < 20 else 1.0)  # the neck in shadow
+    photo[50:60, 20:80] = skin
     photo[70:80] = skin
     photo[:8] = hair
     photo[2:8, 40:60] = skin  # the face below the hair
     mask = np.ones((size, size), np.float32)
     part = np.full((size, size), PARTS.index("torso"))
     part[:8] = PARTS.index("head")
+    part[10:, :10] = part[10:, 90:] = PARTS.index("arms")
     face = face_colour(photo, mask, part, hair)
     assert face is not None and np.allclose(face, skin, atol=0.02)
     assert face_colour(photo, mask, part, None) is None
     out = unseen_side_colours(photo, mask, part, part, hair, skin_colour=face)
     plain = unseen_side_colours(photo, mask, part, part, hair)
+    assert 14 < 10 + NECKLINE_DEPTH * size < 50
     assert np.allclose(out[14, 50], shirt, atol=0.05)  # the back of the V's top rows: the shirt
     assert np.linalg.norm(plain[14, 50] - shirt) > 0.2  # ... where all their pixels give skin
+    assert np.allclose(out[55, 50], skin, atol=0.05)  # below the neckline: the plain median
     assert np.allclose(out[75, 50], skin, atol=0.05)  # skin all across the front: skin at the back
 
 
