@@ -31,7 +31,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    ankle: a long dress or coat hides the legs, whose fitted depth is then a guess) the mid-depth of
    loose neighbourhoods comes instead, by ``looseness`` (step 6), from the extension of the body
    where it is not loose (the torso the garment hangs from), so a gown hangs centred, not along
-   guessed legs.
+   guessed legs. Without it the same holds in the rows of a skirt (:func:`skirt_rows`: the footprint
+   reaches :data:`SKIRT_MARGIN` beyond the body's legs on both sides), feathered over
+   :data:`CLOTHING_FEATHER` of the grid, from the body above the skirt only (the shins seen below its
+   hem do not pull it), and not for an arm, a hand or what lies beside one in its row.
 6. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller; a run ends where the body part changes, a pixel outside the body
@@ -111,6 +114,7 @@ CLOTHING = {"torso": 0.02, "feet": 0.025}
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
 SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
+SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -594,6 +598,27 @@ def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
     maps["back"] = np.where(body, np.maximum(maps["back"], maps["front"]), maps["back"])
 
 
+def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: np.ndarray) -> np.ndarray:
+    """(H,) bool: rows between the top of the legs and the top of the feet where the footprint (arms and
+    hands left out) reaches more than SKIRT_MARGIN beyond the body's legs on both sides: a skirt or a
+    dress, not legs in a stride that the fitted legs miss."""
+    legs = body & (maps["front_part"] == PARTS.index("legs"))
+    out = np.zeros(domain.shape[0], bool)
+    rows = np.nonzero(legs.any(axis=1))[0]
+    if len(rows) == 0:
+        return out
+    feet = np.nonzero((body & (maps["front_part"] == PARTS.index("feet"))).any(axis=1))[0]
+    stop = feet.min() if len(feet) else domain.shape[0]
+    cover = domain & ~(body & np.isin(maps["front_part"], [PARTS.index("arms"), PARTS.index("hands")]))
+    for r in range(rows.min(), stop):
+        lx, cx = np.nonzero(legs[r])[0], np.nonzero(cover[r])[0]
+        if len(lx) == 0 or len(cx) == 0:
+            continue
+        m = float(metres_per_px[r, lx].mean())
+        out[r] = min(lx.min() - cx.min(), cx.max() - lx.max()) * m > SKIRT_MARGIN
+    return out
+
+
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
@@ -658,11 +683,22 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     loose = cv2.boxFilter((domain & ~trunk_cover & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
     t_inflate = looseness * t_round
-    if legs_hidden:  # the garment hangs from where it fits, not from the guessed legs inside it
-        fitted = body & (looseness < 0.5)
-        if fitted.sum() >= 8:
-            hung = harmonic_extension(np.where(fitted, mid_body, 0.0), fitted, domain)
-            mid = looseness * hung + (1.0 - looseness) * mid
+    # the garment hangs from where it fits, not from the guessed legs inside it: with legs_hidden
+    # everywhere, else in the rows where it reaches SKIRT_MARGIN beyond the legs on both sides (a skirt)
+    fitted = body & (looseness < 0.5)
+    if legs_hidden:
+        hang = looseness
+    else:  # feathered over CLOTHING_FEATHER of the grid, so no kink forms where the skirt starts hanging
+        skirt = skirt_rows(maps, body, domain, mid / fx)
+        k = max(3, int(CLOTHING_FEATHER * g) | 1)
+        rows_w = cv2.GaussianBlur(skirt.astype(np.float32)[:, None], (1, k), 0)
+        # not an arm or a hand, nor what lies beside one (the photo's hand beyond the fitted hand)
+        hang = looseness * rows_w * ~np.isin(row_nearest(maps["front_part"], body), limbs)
+        if skirt.any():  # it hangs from above: the shins below its hem do not pull it
+            fitted &= np.arange(g)[:, None] < np.nonzero(skirt)[0].min()
+    if fitted.sum() >= 8 and hang.max() > 0:
+        hung = harmonic_extension(np.where(fitted, mid_body, 0.0), fitted, domain)
+        mid = hang * hung + (1.0 - hang) * mid
     border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
