@@ -30,8 +30,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
    ankle: a long dress or coat hides the legs, whose fitted depth is then a guess) the mid-depth of
    loose neighbourhoods comes instead, by ``looseness`` (step 6), from the extension of the body
-   where it is not loose (the torso the garment hangs from), so a gown hangs centred, not along
-   guessed legs. Without it the same holds in the rows of a skirt (:func:`skirt_rows`: the footprint
+   where it is not loose (the torso the garment hangs from; extended as the horizontal distance in
+   front of the camera, :func:`horizontal_reach`, so it hangs plumb, not leaning towards a camera that
+   looks down), so a gown hangs centred, not along guessed legs. Without it the same holds in the rows of a skirt (:func:`skirt_rows`: the footprint
    reaches :data:`SKIRT_MARGIN` beyond the body's legs on both sides), feathered over
    :data:`CLOTHING_FEATHER` of the grid, from the body above the skirt only (the shins seen below its
    hem do not pull it), and not for an arm, a hand or what lies beside one in its row.
@@ -600,8 +601,9 @@ def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
 
 def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: np.ndarray) -> np.ndarray:
     """(H,) bool: rows between the top of the legs and the top of the feet where the footprint (arms and
-    hands left out) reaches more than SKIRT_MARGIN beyond the body's legs on both sides: a skirt or a
-    dress, not legs in a stride that the fitted legs miss."""
+    hands left out) reaches more than SKIRT_MARGIN beyond the body's legs on both sides -- a skirt or a
+    dress, not legs in a stride that the fitted legs miss -- with the rows between two such rows, and
+    below the last one while it still reaches that far on one side (a hem that swings to one side)."""
     legs = body & (maps["front_part"] == PARTS.index("legs"))
     out = np.zeros(domain.shape[0], bool)
     rows = np.nonzero(legs.any(axis=1))[0]
@@ -610,13 +612,37 @@ def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: 
     feet = np.nonzero((body & (maps["front_part"] == PARTS.index("feet"))).any(axis=1))[0]
     stop = feet.min() if len(feet) else domain.shape[0]
     cover = domain & ~(body & np.isin(maps["front_part"], [PARTS.index("arms"), PARTS.index("hands")]))
+    one_side = np.zeros_like(out)
     for r in range(rows.min(), stop):
         lx, cx = np.nonzero(legs[r])[0], np.nonzero(cover[r])[0]
         if len(lx) == 0 or len(cx) == 0:
             continue
         m = float(metres_per_px[r, lx].mean())
-        out[r] = min(lx.min() - cx.min(), cx.max() - lx.max()) * m > SKIRT_MARGIN
+        margins = (lx.min() - cx.min()) * m, (cx.max() - lx.max()) * m
+        out[r] = min(margins) > SKIRT_MARGIN
+        one_side[r] = max(margins) > SKIRT_MARGIN
+    if out.any():
+        first, last = np.nonzero(out)[0][[0, -1]]
+        out[first:last + 1] = True
+        while last + 1 < len(out) and one_side[last + 1]:
+            last += 1
+            out[last] = True
     return out
+
+
+def horizontal_reach(camera: Cameras) -> np.ndarray:
+    """(H, W): per pixel of ``camera`` (one camera), the horizontal distance in front of the camera (along
+    its forward direction levelled in the world, whose up is +Y) of the point at camera depth 1 on the
+    pixel's ray. A point at depth ``z`` lies ``z * reach`` in front: points of equal ``z * reach`` lie
+    on one vertical plane."""
+    w2c = np.asarray(camera.w2c[0], np.float64)
+    up = w2c[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    forward = np.array([0.0, 0.0, 1.0]) - up[2] * up
+    forward /= np.linalg.norm(forward)
+    h, w = camera.height, camera.width
+    yy, xx = np.mgrid[0:h, 0:w]
+    rays = np.stack([xx + 0.5, yy + 0.5, np.ones((h, w))], axis=-1) @ np.linalg.inv(camera.K[0]).T
+    return np.maximum(rays @ forward, 1e-3)
 
 
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
@@ -697,7 +723,10 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         if skirt.any():  # it hangs from above: the shins below its hem do not pull it
             fitted &= np.arange(g)[:, None] < np.nonzero(skirt)[0].min()
     if fitted.sum() >= 8 and hang.max() > 0:
-        hung = harmonic_extension(np.where(fitted, mid_body, 0.0), fitted, domain)
+        # extended as the distance along the camera's horizontal forward direction, so the garment hangs
+        # plumb in the world (a constant camera depth would lean it towards a camera that looks down)
+        reach = horizontal_reach(cam_g)
+        hung = harmonic_extension(np.where(fitted, mid_body * reach, 0.0), fitted, domain) / reach
         mid = hang * hung + (1.0 - hang) * mid
     border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body

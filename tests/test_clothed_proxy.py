@@ -284,6 +284,23 @@ def test_proxy_fills_a_wider_mask_and_is_closed():
     assert np.all(proxy.skin_joints[top, 0] == 1) and np.allclose(proxy.skin_weights.sum(axis=1), 1.0)
 
 
+def test_horizontal_reach_puts_a_vertical_line_at_one_value():
+    """For a camera looking down 20 deg, the points of a vertical line in the world have one ``z * reach``
+    (their camera depth z times the pixel's reach), while their camera depths differ by centimetres."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import horizontal_reach
+
+    cam = orbit_cameras(1, 200, 40.0, 20.0, 3.0, azimuths_deg=np.array([0.0]))
+    reach = horizontal_reach(cam)
+    line = np.stack([np.full(9, 0.1), np.linspace(-0.8, 0.8, 9), np.full(9, 0.05)], axis=1)
+    w2c, K = cam.w2c[0], cam.K[0]
+    pc = line @ w2c[:3, :3].T + w2c[:3, 3]
+    px = (pc[:, :2] / pc[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
+    r = reach[px[:, 1].astype(int), px[:, 0].astype(int)]
+    h = pc[:, 2] * r
+    assert np.ptp(pc[:, 2]) > 0.3 and np.ptp(h) < 0.01
+
+
 def _tube(radius: float, length: float, top: tuple, tilt_deg: float = 0.0):
     """A closed cylinder along -Y from ``top``, tilted about X by ``tilt_deg`` (its bottom towards -Z
     for > 0)."""
