@@ -32,10 +32,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    loose neighbourhoods comes instead, by ``looseness`` (step 6), from the extension of the body
    where it is not loose (the torso the garment hangs from; extended as the horizontal distance in
    front of the camera, :func:`horizontal_reach`, so it hangs plumb, not leaning towards a camera that
-   looks down), so a gown hangs centred, not along guessed legs. Without it the same holds in the rows of a skirt (:func:`skirt_rows`: the footprint
-   reaches :data:`SKIRT_MARGIN` beyond the body's legs on both sides), feathered over
-   :data:`CLOTHING_FEATHER` of the grid, from the body above the skirt only (the shins seen below its
-   hem do not pull it), and not for an arm, a hand or what lies beside one in its row.
+   looks down), so a gown hangs centred, not along guessed legs. Without it the same holds in the
+   rows of a skirt (:func:`skirt_rows`: the footprint reaches :data:`SKIRT_MARGIN` beyond the body's
+   legs on both sides), feathered over :data:`CLOTHING_FEATHER` of the grid, from the body above the
+   skirt only (the shins seen below its hem do not pull it), and not for an arm, a hand or what lies
+   beside one in its row.
 6. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller; a run ends where the body part changes, a pixel outside the body
@@ -601,9 +602,10 @@ def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
 
 def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: np.ndarray) -> np.ndarray:
     """(H,) bool: rows between the top of the legs and the top of the feet where the footprint (arms and
-    hands left out) reaches more than SKIRT_MARGIN beyond the body's legs on both sides -- a skirt or a
-    dress, not legs in a stride that the fitted legs miss -- with the rows between two such rows, and
-    below the last one while it still reaches that far on one side (a hem that swings to one side)."""
+    hands left out) reaches more than :data:`SKIRT_MARGIN` beyond the body's legs on both sides (a skirt
+    or a dress, not legs in a stride that the fitted legs miss), with the rows between two such rows and
+    below the last one while it still reaches that far on one side (a hem that swings to one side).
+    ``metres_per_px`` (H, W): the grid's pixel size in metres at each pixel's depth."""
     legs = body & (maps["front_part"] == PARTS.index("legs"))
     out = np.zeros(domain.shape[0], bool)
     rows = np.nonzero(legs.any(axis=1))[0]
