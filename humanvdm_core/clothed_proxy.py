@@ -117,6 +117,7 @@ CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this frac
 SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
+SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -601,11 +602,15 @@ def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
 
 
 def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: np.ndarray) -> np.ndarray:
-    """(H,) bool: rows between the top of the legs and the top of the feet where the footprint (arms and
-    hands left out) reaches more than :data:`SKIRT_MARGIN` beyond the body's legs on both sides (a skirt
-    or a dress, not legs in a stride that the fitted legs miss), with the rows between two such rows and
-    below the last one while it still reaches that far on one side (a hem that swings to one side).
-    ``metres_per_px`` (H, W): the grid's pixel size in metres at each pixel's depth."""
+    """(H,) bool: rows between the top of the legs and the top of the feet where one garment wraps both
+    legs (a skirt or a dress): the body's legs stand more than :data:`SKIRT_MARGIN` apart, the
+    footprint (arms and hands left out) has no gap between them (shorts and trousers have one) and
+    reaches more than that beyond them on both sides (legs in a stride that the fitted legs miss reach
+    beyond them on one side only); with the rows between two such rows and below the last one while
+    the footprint, still without a gap, reaches that far on one side (a hem that swings to one side).
+    Fewer than :data:`SKIRT_MIN_ROWS` of the person's height in all (where shorts part a little lower
+    than the fitted legs) count as none. ``metres_per_px`` (H, W): the grid's pixel size in metres at
+    each pixel's depth."""
     legs = body & (maps["front_part"] == PARTS.index("legs"))
     out = np.zeros(domain.shape[0], bool)
     rows = np.nonzero(legs.any(axis=1))[0]
@@ -621,8 +626,13 @@ def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: 
             continue
         m = float(metres_per_px[r, lx].mean())
         margins = (lx.min() - cx.min()) * m, (cx.max() - lx.max()) * m
-        out[r] = min(margins) > SKIRT_MARGIN
-        one_side[r] = max(margins) > SKIRT_MARGIN
+        closed = bool(cover[r, lx.min():lx.max() + 1].all())
+        apart = (~body[r, lx.min():lx.max() + 1]).sum() * m > SKIRT_MARGIN
+        out[r] = min(margins) > SKIRT_MARGIN and closed and apart
+        one_side[r] = max(margins) > SKIRT_MARGIN and closed
+    person = np.nonzero(domain.any(axis=1))[0]
+    if out.any() and np.ptp(np.nonzero(out)[0]) + 1 < SKIRT_MIN_ROWS * np.ptp(person):
+        out[:] = False  # a few rows where shorts or trousers part a little lower than the body's legs
     if out.any():
         first, last = np.nonzero(out)[0][[0, -1]]
         out[first:last + 1] = True
@@ -710,20 +720,23 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     trunk_cover = body & ~np.isin(maps["front_part"], limbs)
     loose = cv2.boxFilter((domain & ~trunk_cover & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
-    t_inflate = looseness * t_round
     # the garment hangs from where it fits, not from the guessed legs inside it: with legs_hidden
-    # everywhere, else in the rows where it reaches SKIRT_MARGIN beyond the legs on both sides (a skirt)
+    # everywhere, else in the rows of a garment that wraps both legs (a skirt, a dress), where it is also
+    # loose across its whole width, the gap between the legs and the legs' own columns included (one
+    # cross-section). Feathered over CLOTHING_FEATHER of the grid, so no kink forms where the skirt
+    # starts; not an arm or a hand, nor what lies beside one (the photo's hand beyond the fitted hand)
     fitted = body & (looseness < 0.5)
+    skirt = skirt_rows(maps, body, domain, mid / fx)
+    k = max(3, int(CLOTHING_FEATHER * g) | 1)
+    skirt_w = cv2.GaussianBlur(skirt.astype(np.float32)[:, None], (1, k), 0)
+    skirt_w = skirt_w * ~np.isin(row_nearest(maps["front_part"], body), limbs)
     if legs_hidden:
         hang = looseness
-    else:  # feathered over CLOTHING_FEATHER of the grid, so no kink forms where the skirt starts hanging
-        skirt = skirt_rows(maps, body, domain, mid / fx)
-        k = max(3, int(CLOTHING_FEATHER * g) | 1)
-        rows_w = cv2.GaussianBlur(skirt.astype(np.float32)[:, None], (1, k), 0)
-        # not an arm or a hand, nor what lies beside one (the photo's hand beyond the fitted hand)
-        hang = looseness * rows_w * ~np.isin(row_nearest(maps["front_part"], body), limbs)
+    else:
+        hang = looseness * skirt_w
         if skirt.any():  # it hangs from above: the shins below its hem do not pull it
             fitted &= np.arange(g)[:, None] < np.nonzero(skirt)[0].min()
+    t_inflate = np.maximum(looseness, skirt_w) * t_round
     if fitted.sum() >= 8 and hang.max() > 0:
         # extended as the distance along the camera's horizontal forward direction, so the garment hangs
         # plumb in the world (a constant camera depth would lean it towards a camera that looks down)

@@ -361,6 +361,50 @@ def test_a_skirt_hangs_from_the_hips_not_along_the_legs(monkeypatch):
     assert not skirt_rows(maps, body_mask, body_mask, np.full(body_mask.shape, 0.01)).any()
 
 
+def test_a_skirt_is_one_cross_section_around_both_legs_and_shorts_are_no_skirt(monkeypatch):
+    """Two legs 6 cm apart under a skirt 0.7 m wide and round (0.7 m deep): from the side the skirt is
+    deep across its whole width, between the legs too (measured 0.61 m at its centre column; 0.44 m when
+    only its pixels beyond the legs were inflated). The same legs in shorts, each leg in its own tube
+    with a gap between them, are no skirt rows."""
+    from humanvdm_core import clothed_proxy
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    pieces = [_tube(0.15, 0.6, (0.0, 0.65, 0.0)), _tube(0.06, 0.85, (0.09, 0.05, 0.0), 15),
+              _tube(0.06, 0.85, (-0.09, 0.05, 0.0), 15)]
+    names = ["spine01", "upperleg01.L", "upperleg01.R"]
+    v = np.concatenate([p[0] for p in pieces])
+    starts = np.cumsum([0] + [len(p[0]) for p in pieces])
+    f = np.concatenate([p[1] + s for p, s in zip(pieces, starts, strict=False)])
+    w = np.zeros((len(v), 3))
+    for j in range(3):
+        w[starts[j]:starts[j + 1], j] = 1.0
+    size = 128
+    front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+
+    def silhouette(*tubes) -> np.ndarray:
+        out = np.zeros((size, size), bool)
+        for tv, tf in tubes:
+            out |= render_views(TexturedMesh(tv, tf), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+        return out
+
+    found = []
+    real_skirt_rows = clothed_proxy.skirt_rows
+    monkeypatch.setattr(clothed_proxy, "skirt_rows", lambda *a, **k: found.append(real_skirt_rows(*a, **k)) or found[-1])
+    body = silhouette((v, f))
+    rgb = np.full((size, size, 3), 0.3, np.float32)
+    mask = body | silhouette(_tube(0.35, 0.4, (0.0, 0.05, 0.0)))
+    p = build_clothed_proxy(v, f, w, names, front, rgb, mask.astype(np.float32), grid=size).mesh.vertices
+    centre = (p[:, 1] < -0.05) & (p[:, 1] > -0.3) & (np.abs(p[:, 0]) < 0.02)
+    assert found[-1].any() and np.ptp(p[centre, 2]) > 0.55
+    shorts = body | silhouette(_tube(0.08, 0.4, (0.11, 0.05, 0.0)), _tube(0.08, 0.4, (-0.11, 0.05, 0.0)))
+    build_clothed_proxy(v, f, w, names, front, rgb, shorts.astype(np.float32), grid=size)
+    assert not found[-1].any()
+
+
 @pytest.mark.slow
 def test_a_gown_over_hidden_legs_hangs_centred_not_along_the_guessed_legs(tmp_path, monkeypatch):
     """A synthetic floor-length gown seen from the front (the ankles hidden): from the side, the
