@@ -33,10 +33,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    where it is not loose (the torso the garment hangs from; extended as the horizontal distance in
    front of the camera, :func:`horizontal_reach`, so it hangs plumb, not leaning towards a camera that
    looks down), so a gown hangs centred, not along guessed legs. Without it the same holds in the
-   rows of a skirt (:func:`skirt_rows`: the footprint reaches :data:`SKIRT_MARGIN` beyond the body's
-   legs on both sides), feathered over :data:`CLOTHING_FEATHER` of the grid, from the body above the
-   skirt only (the shins seen below its hem do not pull it), and not for an arm, a hand or what lies
-   beside one in its row.
+   rows of a skirt (:func:`skirt_rows`: one garment wraps both legs, with no gap between legs that
+   stand apart, and reaches :data:`SKIRT_MARGIN` beyond them on both sides; shorts and trousers are
+   no skirt), feathered over :data:`CLOTHING_FEATHER` of the grid, from the body above the skirt only
+   (the shins seen below its hem do not pull it), and not for an arm, a hand or what lies beside one
+   in its row.
 6. **Half-thickness.** ``T = max(body half-thickness, looseness * INFLATION * r)``: ``r`` is the half-depth
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller; a run ends where the body part changes, a pixel outside the body
@@ -46,8 +47,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
    neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
    left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
-   skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness. ``T = 0``
-   on the footprint's border, so front and back meet there.
+   skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness; in a
+   skirt's rows (step 5) ``looseness`` is 1 across the garment's whole width, the legs and the gap
+   between them included, so the skirt is one cross-section around both legs, not pinched between
+   them. ``T = 0`` on the footprint's border, so front and back meet there.
 7. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
    vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
