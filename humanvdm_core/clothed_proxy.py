@@ -17,7 +17,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`ARM_REACH` in front of the nearest surface of the body without its arms (fading out over
    :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
    single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
-   and the body behind it. A hand's depth is its mean over :data:`HAND_SMOOTH` of the grid
+   and the body behind it. Likewise where an arm or a hand is the body's farthest surface (behind the
+   body, hidden by it: the far arm of a person seen in profile), it stands at most :data:`ARM_REACH`
+   behind the farthest surface of the body without its arms (:func:`arm_reach_limit`), not a fin the
+   arm's length deep. A hand's depth is its mean over :data:`HAND_SMOOTH` of the grid
    (:func:`smooth_hands`): the photo does not show the fingers' depth, and the fitted fingers' relief
    would stand out from the side as shards.
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
@@ -256,6 +259,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     limb = np.isin(parts, [PARTS.index("arms"), PARTS.index("hands")])
     trunk_faces = flat[~limb[faces].all(axis=1)]
     trunk = render_views(TexturedMesh(corners, trunk_faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+    trunk_far = render_views(TexturedMesh(world, trunk_faces, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
 
     def part_map(result) -> np.ndarray:
         p = np.floor(result.rgba[0, ..., 0] * len(PARTS)).astype(np.int64)
@@ -269,7 +273,8 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
-            "back_side": side_map(far), "trunk_front": trunk.depth[0].astype(np.float64)}
+            "back_side": side_map(far), "trunk_front": trunk.depth[0].astype(np.float64),
+            "trunk_back": np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)}
 
 
 # ----------------------------------------------------------------------------- PDE helpers
@@ -588,6 +593,17 @@ def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
         maps[key] = maps[key] + sign * margin * body
 
 
+def arm_reach_limit(trunk_depth: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray]:
+    """For an arm's depth limit (contract step 3): ``trunk_depth`` (H, W; 0 where empty, the depth of the
+    body without its arms) filled out to every pixel from the nearest trunk pixel, and the limit's weight,
+    1 on the trunk and fading to 0 at :data:`ARM_NEAR` (metres in the image plane, ``fx`` the focal
+    length in pixels) from its silhouette."""
+    trunk = trunk_depth > 0
+    ref = nearest_fill(trunk_depth, trunk)
+    gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
+    return ref, np.clip(1.0 - gap_px * ref / fx / ARM_NEAR, 0.0, 1.0)
+
+
 def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
     """Replace the depth of the hands' nearest (farthest) surface by its mean over the hand's pixels
     within :data:`HAND_SMOOTH` of the ``grid``: a photo does not show its fingers' depth, and the fitted
@@ -691,18 +707,21 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # an arm in front of or beside the body stands at most ARM_REACH out of the body's nearest surface: a
     # single photo's arm depth is the least certain part of the fit, and the proxy fills everything between
     # an arm and the body behind it. The pull fades out over ARM_NEAR from the body's silhouette, so an
-    # arm reaching out sideways keeps its depth.
+    # arm reaching out sideways keeps its depth. Likewise behind the body: an arm that it hides (the far
+    # arm of a person seen in profile) stands at most ARM_REACH out of its farthest surface.
     fx = float(cam_g.K[0, 0, 0])
     limbs = [PARTS.index("arms"), PARTS.index("hands")]
-    trunk = maps["trunk_front"] > 0
-    if trunk.any():
-        ref = nearest_fill(maps["trunk_front"], trunk)
-        gap_px = cv2.distanceTransform((~trunk).astype(np.uint8), cv2.DIST_L2, 5)
-        fade = np.clip(1.0 - gap_px * ref / fx / ARM_NEAR, 0.0, 1.0)
+    if (maps["trunk_front"] > 0).any():
+        ref, fade = arm_reach_limit(maps["trunk_front"], fx)
         arm = body & np.isin(maps["front_part"], limbs)
         shift = np.where(arm, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
         maps["front"] = maps["front"] + shift
         maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
+    if (maps["trunk_back"] > 0).any():
+        ref, fade = arm_reach_limit(maps["trunk_back"], fx)
+        arm = body & np.isin(maps["back_part"], limbs)
+        pull = np.where(arm, np.clip(maps["back"] - ref - ARM_REACH, 0.0, None) * fade, 0.0)
+        maps["back"] = np.maximum(maps["back"] - pull, maps["front"])
     add_clothing(maps, body, g)
     smooth_hands(maps, body, g)
     mid_body = 0.5 * (maps["front"] + maps["back"])

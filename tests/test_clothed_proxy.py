@@ -577,6 +577,39 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
     assert abs(float(np.median(z[torso])) - 0.15) < 0.03
 
 
+def test_an_arm_behind_the_body_stands_at_most_arm_reach_behind_it():
+    """A 0.6 m "arm" (0.16 m thick) pointing away from the camera from the back of a cylinder "torso"
+    (hidden by it in the photo, as the far arm of a person seen in profile): the proxy's back stands at
+    most ARM_REACH behind the torso's (it was the arm's far end, 0.6 m behind: a fin from the side);
+    the torso's own back is kept."""
+    import trimesh
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import ARM_REACH, build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    v, f, w, _ = _cylinder_body()
+    arm = trimesh.creation.box(extents=(0.16, 0.16, 0.6))
+    arm.apply_translation((0.0, 0.1, -0.15 - 0.3))  # from the torso's back surface (z = -0.15) away from the camera
+    va, fa = np.asarray(arm.vertices, np.float64), np.asarray(arm.faces, np.int64) + len(v)
+    verts, faces = np.concatenate([v, va]), np.concatenate([f, fa])
+    weights = np.zeros((len(verts), 3))
+    weights[: len(v), :2] = w
+    weights[len(v):, 2] = 1.0
+    names = ["spine01", "head", "lowerarm01.L"]
+    size = 128
+    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
+    proxy = build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
+                                grid=size)
+    z = proxy.mesh.vertices[:, 2]  # the subject faces +z, the camera is on +z
+    assert z.min() >= -0.15 - ARM_REACH - 0.02, z.min()
+    torso = ~proxy.front & (np.abs(proxy.mesh.vertices[:, 1] + 0.4) < 0.05)  # the torso's back well below the arm
+    assert abs(float(np.median(z[torso])) + 0.15) < 0.03
+
+
 def test_clothes_and_shoes_give_the_torso_and_feet_thickness_and_leave_the_head_alone():
     """The cylinder "body" (0.3 m thick) in its own mask: from the side the proxy's torso is 2 * CLOTHING["torso"]
     thicker than the body (a naked fit wears a shirt), its "foot" 2 * CLOTHING["feet"] (shoes), the head keeps
