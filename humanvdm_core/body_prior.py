@@ -23,7 +23,9 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 3. Facing (:func:`humanvdm_core.perception.facing.estimate_facing`: a face found, the left/right
    order of shoulders and hips, MediaPipe's 3D nose vs ears): a photo taken from behind is built
    facing away from the camera and says so in a warning; a doubtful case is assumed to face the
-   camera, with a warning.
+   camera, with a warning. A person the fit shows in profile (the shoulders' line turned at least
+   :data:`PROFILE_DEG` out of the image plane, :func:`shoulder_turn_deg`) gets a warning that says so
+   instead: their front and back are seen edge-on and both are guessed.
 4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
    azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
    directions, the mask one-sided so clothing never stretches the body, the torso leaning no further
@@ -275,6 +277,7 @@ GEOMETRIES = ("clothed", "body")  # what the orbit is rendered from: the clothed
 LOOSE_FRACTION = 0.8  # the body covering less of the silhouette than this: clothing/hair/objects are guessed
 HIDDEN_CONFIDENCE = MIN_CONFIDENCE  # a keypoint less sure than the detector's "confident" is hidden
 SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
+PROFILE_DEG = 60.0  # the fitted shoulders' line this far out of the image plane: the person is in profile
 
 
 def _ankles_hidden(confidences: np.ndarray) -> bool:
@@ -302,6 +305,14 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
     return out
 
 
+def shoulder_turn_deg(coco17: np.ndarray, w2c: np.ndarray) -> float:
+    """Degrees the shoulders' line (COCO joints 5 and 6 of ``coco17`` (17, 3), world) is turned out of
+    the image plane of the camera ``w2c`` (4, 4) about the vertical: 0 facing the camera or away from
+    it, 90 in profile."""
+    line = (coco17[5] - coco17[6]) @ np.asarray(w2c, np.float64)[:3, :3].T
+    return float(np.degrees(np.arctan2(abs(line[2]), abs(line[0]))))
+
+
 def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
                      background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
                      fill: float = DEFAULT_FILL, seed: int = 0, geometry: str = "clothed",
@@ -326,11 +337,12 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     warnings = list(view.warnings)
 
     facing = estimate_facing(view.rgba[..., :3], view.keypoints, view.confidences, view.world_keypoints)
+    facing_warning = None
     if facing.away:
-        warnings.append(f"{name} shows the person from behind: built facing away from the camera; their front "
-                        "(face included) is not in the photo and is filled with plain colours")
+        facing_warning = (f"{name} shows the person from behind: built facing away from the camera; their front "
+                          "(face included) is not in the photo and is filled with plain colours")
     elif facing.ambiguous:
-        warnings.append(f"{name}: no face found and the body's facing is unclear: assumed facing the camera")
+        facing_warning = f"{name}: no face found and the body's facing is unclear: assumed facing the camera"
 
     model = load_body_model("anny")
     torch.manual_seed(seed)
@@ -340,6 +352,11 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
                    logger=lg)
     vertices = fit.output.vertices[0].numpy().astype(np.float64)
     faces = model.faces.numpy().astype(np.int64)
+    turn = shoulder_turn_deg(fit.output.coco17[0].numpy(), front_cam.w2c[0])
+    if turn >= PROFILE_DEG:  # front or back means little for a person seen from the side
+        facing_warning = (f"{name} shows the person in profile (shoulders turned {turn:.0f} deg from the camera): "
+                          "their front and back are seen edge-on, so both are guessed")
+    warnings += [facing_warning] if facing_warning else []
     warnings += _pose_warnings(name, view, fit.output.coco17[0].numpy())
 
     weights = model.skinning_weights.numpy()

@@ -499,7 +499,7 @@ def test_skirt_width_from_the_side(tmp_path):
     assert got["body"].mean() < 0.75 * true_w.mean()
 
 
-def _photo_of(spec, root, size: int = 256):
+def _photo_of(spec, root, size: int = 256, azimuth_deg: float = 0.0):
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.io import write_png
     from humanvdm_core.render import render_views
@@ -507,7 +507,7 @@ def _photo_of(spec, root, size: int = 256):
     from testdata.synthetic import make_subject
 
     mesh = normalize_scan(load_scan(make_subject(spec, root / "subject", texture_size=256)))
-    cams = orbit_cameras(1, size, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([0.0]))
+    cams = orbit_cameras(1, size, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([azimuth_deg]))
     path = root / "photo.png"
     write_png(path, render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba[0, ..., :3])
     return path
@@ -517,22 +517,30 @@ def _photo_of(spec, root, size: int = 256):
 @pytest.mark.parametrize("case, expected", [
     ("gown", ("photo.png: the knees and ankles are hidden", "of the person's silhouette lies outside the fitted body")),
     ("seated", ("photo.png: the person is seated or crouching",)),
+    ("profile", ("photo.png shows the person in profile",)),
 ])
 def test_the_run_says_what_it_guessed(tmp_path, case, expected):
-    """A gown hides the legs and reaches far beyond the body; a seated person's seat is not in the mask:
-    each is said in a warning that names the photo."""
+    """A gown hides the legs and reaches far beyond the body; a seated person's seat is not in the mask;
+    a person photographed from the side has front and back edge-on: each is said in a warning that
+    names the photo (in profile, not a guess of front or back)."""
     pytest.importorskip("anny")
     pytest.importorskip("mediapipe")
     from humanvdm_core.body_prior import build_body_proxy
     from testdata.synthetic import GARMENT_EXAMPLES, SubjectSpec
 
     torch.set_num_threads(1)
-    spec = GARMENT_EXAMPLES["gown"] if case == "gown" else SubjectSpec(pose="seated", seed=5)
-    proxy = build_body_proxy(_photo_of(spec, tmp_path), size=256, iterations=60)
+    spec = {"gown": GARMENT_EXAMPLES["gown"], "seated": SubjectSpec(pose="seated", seed=5),
+            "profile": SubjectSpec(seed=3)}[case]
+    photo = _photo_of(spec, tmp_path, azimuth_deg=90.0 if case == "profile" else 0.0)
+    proxy = build_body_proxy(photo, size=256, iterations=60)
     for text in expected:
         assert any(text in w for w in proxy.warnings), proxy.warnings
     if case == "gown":
         assert not any("seated" in w for w in proxy.warnings), proxy.warnings
+    if case == "profile":
+        assert not any("facing" in w or "from behind" in w for w in proxy.warnings), proxy.warnings
+    else:
+        assert not any("in profile" in w for w in proxy.warnings), proxy.warnings
 
 
 def test_outside_of_keeps_enclosed_holes_apart():
