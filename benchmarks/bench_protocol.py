@@ -3,7 +3,8 @@
 Per textured scan in ``../shared/fixtures/scans/`` (RenderPeople Mei and Eric, the three.js Soldier;
 skipped with a message when that folder is absent):
 
-1. the scan (``load_scan`` + ``normalize_scan``, turned to face +Z) is rendered at azimuth 0,
+1. the scan (``load_scan`` + ``normalize_scan``, turned to face +Z; ``--turn DEG`` turns it further,
+   90 for a photo in profile) is rendered at azimuth 0,
    elevation 10 deg, at the orbit framing radius (``framing_radius()``), ``--photo-size``² over
    white; that PNG (RGBA, RGB already over white; ``--opaque`` drops the alpha) is the *photo*,
    the only thing the pipeline sees;
@@ -49,7 +50,7 @@ The pipeline runs as ``<this python> -m humanvdm_core.cli run`` from this file's
 worktree runs its own code (the venv's ``humanvdm`` script would import the editable install's).
 
 Run:  .venv/bin/python -m benchmarks.bench_protocol [--subjects mei eric soldier] [--label after]
-      [--skip-pipeline] [--work DIR] [--set splat-optimize.preset=tiny]
+      [--skip-pipeline] [--work DIR] [--set splat-optimize.preset=tiny] [--turn 90 --label profile]
 """
 
 from __future__ import annotations
@@ -164,7 +165,7 @@ def run_scan(folder: Path, work: Path, args) -> dict:
     from humanvdm_core.workflow.store import Store
 
     name = folder.name
-    yaw = YAW_DEG.get(name, 0.0)
+    yaw = YAW_DEG.get(name, 0.0) + args.turn
     mesh = normalize_scan(load_scan(folder), yaw_deg=yaw)
     radius = framing_radius()
     store = work / "store"
@@ -291,6 +292,7 @@ def save(results: dict, args) -> Path:
     doc = {"views": {v: {"azimuth_deg": az} for v, az in VIEWS.items()}, "view_order": list(VIEWS),
            "left_is": LEFT_IS, "elevation_deg": ELEVATION, "photo_size": args.photo_size,
            "photo_alpha": not args.opaque, "eval_size": args.eval_size, "reframed": not args.no_reframe,
+           "turn_deg": args.turn,
            "orbit_frame_rule": "nearest azimuth on the circle, lower azimuth on a tie; scored against the scan "
                                "rendered at that frame's own camera",
            "overrides": args.set or [], "label": args.label, "work": str(args.work),
@@ -323,6 +325,9 @@ def main() -> int:
     parser.add_argument("--photo-size", type=int, default=768)
     parser.add_argument("--eval-size", type=int, default=512)
     parser.add_argument("--opaque", action="store_true", help="write the photo without alpha (RGB over white)")
+    parser.add_argument("--turn", type=float, default=0.0,
+                        help="turn each scan by this many degrees about the vertical before the photo "
+                             "(90: a profile; the views are then relative to the photo, not the scan's front)")
     parser.add_argument("--no-reframe", action="store_true", help="score the renders as they are (resized only)")
     parser.add_argument("--merge", action="store_true",
                         help="keep scans of an earlier protocol_<label>.json that this run does not redo")
