@@ -3,7 +3,7 @@ fixture photos and on stress cases, with contact sheets to look at.
 
 Inputs: every photo in ../shared/fixtures/photos (``*_mask`` files are ground truth, not inputs) and
 the stress cases in ``--cases`` (made once by ``--make-cases``, so a run of older code reads the very
-same photos): the RenderPeople scans rendered from the front, from behind and turned by 35 deg;
+same photos): the RenderPeople scans rendered from the front, from behind, turned by 35 deg and in profile;
 synthetic subjects with a skirt and long hair, a gown, a seated pose and hands on the hips
 (:data:`testdata.synthetic.GARMENT_EXAMPLES`). At ``--size`` (576, the SV3D resolution) with
 ``--iterations`` fit steps (150, the stage's default), one thread, per input:
@@ -61,7 +61,8 @@ def make_cases(out: Path) -> list[Path]:
         if (scans / folder).is_dir():
             meshes[name] = normalize_scan(load_scan(scans / folder))
     views = {f"{n}_{tag}": (mesh, az) for n, mesh in meshes.items() for tag, az in (("front", 0.0), ("back", 180.0),
-                                                                                        ("turned35", 35.0))}
+                                                                                        ("turned35", 35.0),
+                                                                                        ("profile", 90.0))}
     work = out / "subjects"
     specs = dict(GARMENT_EXAMPLES)
     specs["seated"] = SubjectSpec(pose="seated", seed=5)
