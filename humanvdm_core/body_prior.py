@@ -291,10 +291,15 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
     (17, 3; world, Y up): hidden legs or hands, a seated pose."""
     out = []
     conf = view.confidences
-    hidden_legs = [n for n, i in (("knees", (13, 14)), ("ankles", (15, 16))) if min(conf[i[0]], conf[i[1]]) < HIDDEN_CONFIDENCE]
+    hidden_legs = []
+    for joint, (left, right) in (("knee", (13, 14)), ("ankle", (15, 16))):
+        hidden = [side for side, i in (("left", left), ("right", right)) if conf[i] < HIDDEN_CONFIDENCE]
+        if hidden:
+            hidden_legs.append(f"{joint}s" if len(hidden) == 2 else f"{hidden[0]} {joint}")
     if hidden_legs:
-        out.append(f"{name}: the {' and '.join(hidden_legs)} are hidden (a long dress or coat, or out of view): "
-                   "the legs' pose is guessed")
+        verb = "is" if len(hidden_legs) == 1 and not hidden_legs[0].endswith("s") else "are"
+        out.append(f"{name}: the {' and '.join(hidden_legs)} {verb} hidden (behind the other leg, under a long dress "
+                   "or coat, or out of view): the legs' pose is guessed")
     if min(conf[9], conf[10]) < HIDDEN_CONFIDENCE:
         out.append(f"{name}: a hand is hidden (behind the body, in a pocket or out of view): its pose is guessed")
     thighs = coco17[[13, 14]] - coco17[[11, 12]]

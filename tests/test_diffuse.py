@@ -170,3 +170,26 @@ def test_blank_photo_is_refused(tmp_path):
     proc = _run_stage(blank, tmp_path / "out")
     assert proc.returncode == 3, proc.stderr
     assert "no person" in proc.stderr
+
+
+def test_a_hidden_knee_is_named_and_a_profile_is_measured_from_the_shoulders():
+    """The warning names the one knee the detector does not see (the far leg of a person in profile),
+    and says "the knees" when both are hidden; the shoulders' turn out of the image plane is 0 for a
+    person facing the camera and 90 in profile."""
+    from types import SimpleNamespace
+
+    from humanvdm_core.body_prior import _pose_warnings, shoulder_turn_deg
+
+    coco = np.zeros((17, 3))
+    coco[[11, 12], 1], coco[[13, 14], 1], coco[[15, 16], 1] = 1.0, 0.55, 0.1  # standing: thighs vertical
+    conf = np.ones(17)
+    conf[14] = 0.1
+    (one,) = _pose_warnings("p.png", SimpleNamespace(confidences=conf), coco)
+    assert one.startswith("p.png: the right knee is hidden (behind the other leg"), one
+    conf[13] = 0.1
+    assert _pose_warnings("p.png", SimpleNamespace(confidences=conf), coco)[0].startswith("p.png: the knees are hidden")
+    coco[5], coco[6] = (0.2, 1.4, 0.0), (-0.2, 1.4, 0.0)
+    w2c = np.eye(4)
+    assert shoulder_turn_deg(coco, w2c) < 1.0
+    coco[5], coco[6] = (0.0, 1.4, 0.2), (0.0, 1.4, -0.2)
+    assert shoulder_turn_deg(coco, w2c) > 89.0
