@@ -515,7 +515,8 @@ def _photo_of(spec, root, size: int = 256, azimuth_deg: float = 0.0):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case, expected", [
-    ("gown", ("photo.png: the knees and ankles are hidden", "of the person's silhouette lies outside the fitted body")),
+    ("gown", ("ankles are hidden (behind the other leg, under a long dress or coat",
+              "of the person's silhouette lies outside the fitted body")),
     ("seated", ("photo.png: the person is seated or crouching",)),
     ("profile", ("photo.png shows the person in profile",)),
 ])
