@@ -51,9 +51,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
    left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
    skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness; in a
-   skirt's rows (step 5) ``looseness`` is 1 across the garment's whole width, the legs and the gap
-   between them included, so the skirt is one cross-section around both legs, not pinched between
-   them. ``T = 0`` on the footprint's border, so front and back meet there.
+   skirt's rows (step 5) the whole run of the mask is inflated as loose (``r`` from the run without
+   the body parts' splits: the legs, the gap between them and hands hanging at its sides included;
+   the fitted arms and hands keep their own), so the skirt is one cross-section around both legs,
+   not pinched between them or at the hands. ``T = 0`` on the footprint's border, so front and back meet there.
 7. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
    vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
@@ -743,22 +744,24 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     loose = cv2.boxFilter((domain & ~trunk_cover & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
     # the garment hangs from where it fits, not from the guessed legs inside it: with legs_hidden
-    # everywhere, else in the rows of a garment that wraps both legs (a skirt, a dress), where it is also
-    # loose across its whole width, the gap between the legs and the legs' own columns included (one
-    # cross-section). Feathered over CLOTHING_FEATHER of the grid, so no kink forms where the skirt
-    # starts; not an arm or a hand, nor what lies beside one (the photo's hand beyond the fitted hand)
+    # everywhere, else in the rows of a garment that wraps both legs (a skirt, a dress), feathered over
+    # CLOTHING_FEATHER of the grid so no kink forms where the skirt starts; not an arm or a hand, nor what
+    # lies beside one (the photo's hand beyond the fitted hand)
     fitted = body & (looseness < 0.5)
     skirt = skirt_rows(maps, body, domain, mid / fx)
     k = max(3, int(CLOTHING_FEATHER * g) | 1)
     skirt_w = cv2.GaussianBlur(skirt.astype(np.float32)[:, None], (1, k), 0)
-    skirt_w = skirt_w * ~np.isin(row_nearest(maps["front_part"], body), limbs)
     if legs_hidden:
         hang = looseness
     else:
-        hang = looseness * skirt_w
+        hang = looseness * skirt_w * ~np.isin(row_nearest(maps["front_part"], body), limbs)
         if skirt.any():  # it hangs from above: the shins below its hem do not pull it
             fitted &= np.arange(g)[:, None] < np.nonzero(skirt)[0].min()
-    t_inflate = np.maximum(looseness, skirt_w) * t_round
+    # a skirt's row is one cross-section around both legs: inflated as loose across the whole run of the
+    # mask (the legs, the gap between them and the hands hanging at its sides included), the fitted arms
+    # and hands themselves keeping their own thickness
+    t_skirt = run_halfdepth(domain) * mid / fx * INFLATION if skirt.any() else 0.0
+    t_inflate = np.maximum(looseness * t_round, skirt_w * ~(body & np.isin(maps["front_part"], limbs)) * t_skirt)
     if fitted.sum() >= 8 and hang.max() > 0:
         # extended as the distance along the camera's horizontal forward direction, so the garment hangs
         # plumb in the world (a constant camera depth would lean it towards a camera that looks down)

@@ -405,6 +405,46 @@ def test_a_skirt_is_one_cross_section_around_both_legs_and_shorts_are_no_skirt(m
     assert not found[-1].any()
 
 
+def test_hands_hanging_at_a_skirts_sides_do_not_pinch_it():
+    """The skirt of the test above with two hands hanging at its sides, inside its outline: in the hands'
+    rows the skirt is as deep from the side as below them (measured 0.61 vs 0.63 m; 0.32 m when a row's
+    run of the mask ended at the hands)."""
+    import trimesh
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    pieces = [_tube(0.15, 0.6, (0.0, 0.65, 0.0)), _tube(0.06, 0.85, (0.09, 0.05, 0.0), 15),
+              _tube(0.06, 0.85, (-0.09, 0.05, 0.0), 15)]
+    for x in (0.27, -0.27):
+        hand = trimesh.creation.box(extents=(0.08, 0.16, 0.05))
+        hand.apply_translation((x, -0.1, 0.0))
+        pieces.append((np.asarray(hand.vertices), np.asarray(hand.faces)))
+    names = ["spine01", "upperleg01.L", "upperleg01.R", "hand.L", "hand.R"]
+    v = np.concatenate([p[0] for p in pieces])
+    starts = np.cumsum([0] + [len(p[0]) for p in pieces])
+    f = np.concatenate([p[1] + s for p, s in zip(pieces, starts, strict=False)])
+    w = np.zeros((len(v), len(names)))
+    for j in range(len(names)):
+        w[starts[j]:starts[j + 1], j] = 1.0
+    size = 128
+    front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    mask = np.zeros((size, size), bool)
+    for tv, tf in ((v, f), _tube(0.35, 0.4, (0.0, 0.05, 0.0))):
+        mask |= render_views(TexturedMesh(tv, tf), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    rgb = np.full((size, size, 3), 0.3, np.float32)
+    p = build_clothed_proxy(v, f, w, names, front, rgb, mask.astype(np.float32), grid=size).mesh.vertices
+
+    def depth(lo: float, hi: float) -> float:
+        rows = (p[:, 1] > lo) & (p[:, 1] < hi) & (np.abs(p[:, 0]) < 0.2)
+        return float(np.ptp(p[rows, 2]))
+
+    assert depth(-0.16, -0.04) > 0.85 * depth(-0.3, -0.2), (depth(-0.16, -0.04), depth(-0.3, -0.2))
+
+
 @pytest.mark.slow
 def test_a_gown_over_hidden_legs_hangs_centred_not_along_the_guessed_legs(tmp_path, monkeypatch):
     """A synthetic floor-length gown seen from the front (the ankles hidden): from the side, the
