@@ -54,7 +54,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    skirt's rows (step 5) the whole run of the mask is inflated as loose (``r`` from the run without
    the body parts' splits: the legs, the gap between them and hands hanging at its sides included;
    the fitted arms and hands keep their own), so the skirt is one cross-section around both legs,
-   not pinched between them or at the hands. ``T = 0`` on the footprint's border, so front and back meet there.
+   not pinched between them or at the hands. ``T = 0`` on the footprint's border, so front and back
+   meet there.
 7. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
    vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
