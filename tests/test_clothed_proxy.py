@@ -314,6 +314,22 @@ def _tube(radius: float, length: float, top: tuple, tilt_deg: float = 0.0):
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
 
 
+def _torso_on_legs(extra: tuple = ()):
+    """A tube "torso" on two tube "legs" 6 cm apart, tilted 15 deg back (a single photo's leg depth is a
+    guess), plus ``extra`` ((vertices, faces), joint name) pieces: ``(vertices, faces, weights, names)``,
+    each piece skinned to its own joint."""
+    pieces = [(_tube(0.15, 0.6, (0.0, 0.65, 0.0)), "spine01"),
+              (_tube(0.06, 0.85, (0.09, 0.05, 0.0), 15), "upperleg01.L"),
+              (_tube(0.06, 0.85, (-0.09, 0.05, 0.0), 15), "upperleg01.R"), *extra]
+    v = np.concatenate([p[0][0] for p in pieces])
+    starts = np.cumsum([0] + [len(p[0][0]) for p in pieces])
+    f = np.concatenate([p[0][1] + s for p, s in zip(pieces, starts, strict=False)])
+    w = np.zeros((len(v), len(pieces)))
+    for j in range(len(pieces)):
+        w[starts[j]:starts[j + 1], j] = 1.0
+    return v, f, w, [p[1] for p in pieces]
+
+
 def test_a_skirt_hangs_from_the_hips_not_along_the_legs(monkeypatch):
     """A torso on two legs tilted 15 deg back (a single photo's leg depth is a guess), in a mask with a
     skirt 0.7 m wide from the hips down 0.4 m, the shins below it seen: the skirt hangs under the torso
@@ -326,15 +342,7 @@ def test_a_skirt_hangs_from_the_hips_not_along_the_legs(monkeypatch):
     from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
-    pieces = [_tube(0.15, 0.6, (0.0, 0.65, 0.0)), _tube(0.06, 0.85, (0.09, 0.05, 0.0), 15),
-              _tube(0.06, 0.85, (-0.09, 0.05, 0.0), 15)]
-    names = ["spine01", "upperleg01.L", "upperleg01.R"]
-    v = np.concatenate([p[0] for p in pieces])
-    starts = np.cumsum([0] + [len(p[0]) for p in pieces])
-    f = np.concatenate([p[1] + s for p, s in zip(pieces, starts, strict=False)])
-    w = np.zeros((len(v), 3))
-    for j in range(3):
-        w[starts[j]:starts[j + 1], j] = 1.0
+    v, f, w, names = _torso_on_legs()
     size = 128
     cams = orbit_cameras(2, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0, 90.0]))
     front = cams.subset([0])
@@ -373,15 +381,7 @@ def test_a_skirt_is_one_cross_section_around_both_legs_and_shorts_are_no_skirt(m
     from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
-    pieces = [_tube(0.15, 0.6, (0.0, 0.65, 0.0)), _tube(0.06, 0.85, (0.09, 0.05, 0.0), 15),
-              _tube(0.06, 0.85, (-0.09, 0.05, 0.0), 15)]
-    names = ["spine01", "upperleg01.L", "upperleg01.R"]
-    v = np.concatenate([p[0] for p in pieces])
-    starts = np.cumsum([0] + [len(p[0]) for p in pieces])
-    f = np.concatenate([p[1] + s for p, s in zip(pieces, starts, strict=False)])
-    w = np.zeros((len(v), 3))
-    for j in range(3):
-        w[starts[j]:starts[j + 1], j] = 1.0
+    v, f, w, names = _torso_on_legs()
     size = 128
     front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
 
@@ -417,19 +417,12 @@ def test_hands_hanging_at_a_skirts_sides_do_not_pinch_it():
     from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
-    pieces = [_tube(0.15, 0.6, (0.0, 0.65, 0.0)), _tube(0.06, 0.85, (0.09, 0.05, 0.0), 15),
-              _tube(0.06, 0.85, (-0.09, 0.05, 0.0), 15)]
-    for x in (0.27, -0.27):
+    hands = []
+    for x, name in ((0.27, "hand.L"), (-0.27, "hand.R")):
         hand = trimesh.creation.box(extents=(0.08, 0.16, 0.05))
         hand.apply_translation((x, -0.1, 0.0))
-        pieces.append((np.asarray(hand.vertices), np.asarray(hand.faces)))
-    names = ["spine01", "upperleg01.L", "upperleg01.R", "hand.L", "hand.R"]
-    v = np.concatenate([p[0] for p in pieces])
-    starts = np.cumsum([0] + [len(p[0]) for p in pieces])
-    f = np.concatenate([p[1] + s for p, s in zip(pieces, starts, strict=False)])
-    w = np.zeros((len(v), len(names)))
-    for j in range(len(names)):
-        w[starts[j]:starts[j + 1], j] = 1.0
+        hands.append(((np.asarray(hand.vertices), np.asarray(hand.faces)), name))
+    v, f, w, names = _torso_on_legs(tuple(hands))
     size = 128
     front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
     mask = np.zeros((size, size), bool)
@@ -594,20 +587,20 @@ def test_outside_of_keeps_enclosed_holes_apart():
     assert out[0, 0] and out[29, 15] and not out[15, 15] and not out[7, 7]
 
 
-def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
-    """A 0.6 m "arm" pointing at the camera from the front of a cylinder "torso": in the proxy it stands
-    at most ARM_REACH out of the torso; the torso's own depth is kept."""
+def _proxy_of_torso_with_arm(thickness: float, centre_z: float):
+    """The clothed proxy of a cylinder "torso" (front surface at z = 0.15, back at -0.15; the subject faces
+    +z, the camera is on +z) with a 0.6 m box "arm" along z, ``thickness`` wide, centred at ``centre_z``."""
     import trimesh
 
     from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.clothed_proxy import ARM_REACH, build_clothed_proxy
+    from humanvdm_core.clothed_proxy import build_clothed_proxy
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     v, f, w, _ = _cylinder_body()
-    arm = trimesh.creation.box(extents=(0.08, 0.08, 0.6))
-    arm.apply_translation((0.0, 0.1, 0.15 + 0.3))  # from the torso's front surface (z = 0.15) towards the camera
+    arm = trimesh.creation.box(extents=(thickness, thickness, 0.6))
+    arm.apply_translation((0.0, 0.1, centre_z))
     va, fa = np.asarray(arm.vertices, np.float64), np.asarray(arm.faces, np.int64) + len(v)
     verts, faces = np.concatenate([v, va]), np.concatenate([f, fa])
     weights = np.zeros((len(verts), 3))
@@ -617,9 +610,17 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
     size = 128
     cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
     mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
-    proxy = build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
-                                grid=size)
-    z = proxy.mesh.vertices[:, 2]  # the subject faces +z, the camera is on +z
+    return build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
+                               grid=size)
+
+
+def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
+    """A 0.6 m "arm" pointing at the camera from the front of a cylinder "torso": in the proxy it stands
+    at most ARM_REACH out of the torso; the torso's own depth is kept."""
+    from humanvdm_core.clothed_proxy import ARM_REACH
+
+    proxy = _proxy_of_torso_with_arm(0.08, 0.15 + 0.3)  # from the torso's front surface towards the camera
+    z = proxy.mesh.vertices[:, 2]
     assert z.max() <= 0.15 + ARM_REACH + 0.02, z.max()  # was 0.75 (the arm's tip)
     assert z.max() >= 0.15 + ARM_REACH - 0.03
     torso = proxy.front & (np.abs(proxy.mesh.vertices[:, 1] + 0.4) < 0.05)  # the torso's front well below the arm
@@ -631,29 +632,10 @@ def test_an_arm_behind_the_body_stands_at_most_arm_reach_behind_it():
     (hidden by it in the photo, as the far arm of a person seen in profile): the proxy's back stands at
     most ARM_REACH behind the torso's (it was the arm's far end, 0.6 m behind: a fin from the side);
     the torso's own back is kept."""
-    import trimesh
+    from humanvdm_core.clothed_proxy import ARM_REACH
 
-    from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.clothed_proxy import ARM_REACH, build_clothed_proxy
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
-
-    torch.set_num_threads(1)
-    v, f, w, _ = _cylinder_body()
-    arm = trimesh.creation.box(extents=(0.16, 0.16, 0.6))
-    arm.apply_translation((0.0, 0.1, -0.15 - 0.3))  # from the torso's back surface (z = -0.15) away from the camera
-    va, fa = np.asarray(arm.vertices, np.float64), np.asarray(arm.faces, np.int64) + len(v)
-    verts, faces = np.concatenate([v, va]), np.concatenate([f, fa])
-    weights = np.zeros((len(verts), 3))
-    weights[: len(v), :2] = w
-    weights[len(v):, 2] = 1.0
-    names = ["spine01", "head", "lowerarm01.L"]
-    size = 128
-    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
-    mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
-    proxy = build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
-                                grid=size)
-    z = proxy.mesh.vertices[:, 2]  # the subject faces +z, the camera is on +z
+    proxy = _proxy_of_torso_with_arm(0.16, -0.15 - 0.3)  # from the torso's back surface away from the camera
+    z = proxy.mesh.vertices[:, 2]
     assert z.min() >= -0.15 - ARM_REACH - 0.02, z.min()
     torso = ~proxy.front & (np.abs(proxy.mesh.vertices[:, 1] + 0.4) < 0.05)  # the torso's back well below the arm
     assert abs(float(np.median(z[torso])) + 0.15) < 0.03
