@@ -733,7 +733,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # a run ends where the body part beside it changes: a sleeve touching the torso in the photo is as
     # thick as the sleeve, not as the row through both (wings from the side); the part of a loose pixel is
     # that of the nearest body pixel in its own row, so a skirt below hanging hands keeps its whole width
-    t_round = run_halfdepth(domain, row_nearest(maps["front_part"], body)) * mid / fx * INFLATION
+    beside = row_nearest(maps["front_part"], body)
+    t_round = run_halfdepth(domain, beside) * mid / fx * INFLATION
     # inflate where the mask reaches beyond the body (loose clothing, hair, objects), not where it hugs it
     window = max(3, int(LOOSE_WINDOW * g) | 1)
     area = cv2.boxFilter(domain.astype(np.float32), -1, (window, window), normalize=False)
@@ -755,7 +756,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     if legs_hidden:
         hang = looseness
     else:
-        hang = looseness * skirt_w * ~np.isin(row_nearest(maps["front_part"], body), limbs)
+        hang = looseness * skirt_w * ~np.isin(beside, limbs)
         if skirt.any():  # it hangs from above: the shins below its hem do not pull it
             fitted &= np.arange(g)[:, None] < np.nonzero(skirt)[0].min()
     # a skirt's row is one cross-section around both legs: inflated as loose across the whole run of the
