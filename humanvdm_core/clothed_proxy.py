@@ -713,10 +713,10 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # arm of a person seen in profile) stands at most ARM_REACH out of its farthest surface.
     fx = float(cam_g.K[0, 0, 0])
     limbs = [PARTS.index("arms"), PARTS.index("hands")]
+    limb_front = body & np.isin(maps["front_part"], limbs)  # the fitted arms and hands as the nearest surface
     if (maps["trunk_front"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_front"], fx)
-        arm = body & np.isin(maps["front_part"], limbs)
-        shift = np.where(arm, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
+        shift = np.where(limb_front, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
         maps["front"] = maps["front"] + shift
         maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
     if (maps["trunk_back"] > 0).any():
@@ -742,7 +742,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # take the surrounding body's thickness; only what lies outside the body's outline is loose
     holes = domain & ~body & ~outside_of(body)
     # hands and arms hanging beside a skirt or a coat do not make it tight: only the trunk's cover counts
-    trunk_cover = body & ~np.isin(maps["front_part"], limbs)
+    trunk_cover = body & ~limb_front
     loose = cv2.boxFilter((domain & ~trunk_cover & ~holes).astype(np.float32), -1, (window, window), normalize=False)
     looseness = np.clip((loose / np.maximum(area, 1.0) - LOOSE_RANGE[0]) / (LOOSE_RANGE[1] - LOOSE_RANGE[0]), 0, 1)
     # the garment hangs from where it fits, not from the guessed legs inside it: with legs_hidden
@@ -763,7 +763,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # mask (the legs, the gap between them and the hands hanging at its sides included), the fitted arms
     # and hands themselves keeping their own thickness
     t_skirt = run_halfdepth(domain) * mid / fx * INFLATION if skirt.any() else 0.0
-    t_inflate = np.maximum(looseness * t_round, skirt_w * ~(body & np.isin(maps["front_part"], limbs)) * t_skirt)
+    t_inflate = np.maximum(looseness * t_round, skirt_w * ~limb_front * t_skirt)
     if fitted.sum() >= 8 and hang.max() > 0:
         # extended as the distance along the camera's horizontal forward direction, so the garment hangs
         # plumb in the world (a constant camera depth would lean it towards a camera that looks down)
