@@ -356,13 +356,14 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),
                    logger=lg)
     vertices = fit.output.vertices[0].numpy().astype(np.float64)
+    coco17 = fit.output.coco17[0].numpy().astype(np.float64)
     faces = model.faces.numpy().astype(np.int64)
-    turn = shoulder_turn_deg(fit.output.coco17[0].numpy(), front_cam.w2c[0])
+    turn = shoulder_turn_deg(coco17, front_cam.w2c[0])
     if turn >= PROFILE_DEG:  # front or back means little for a person seen from the side
         facing_warning = (f"{name} shows the person in profile (shoulders turned {turn:.0f} deg from the camera): "
                           "their front and back are seen edge-on, so both are guessed")
     warnings += [facing_warning] if facing_warning else []
-    warnings += _pose_warnings(name, view, fit.output.coco17[0].numpy())
+    warnings += _pose_warnings(name, view, coco17)
 
     weights = model.skinning_weights.numpy()
     head_ids = [model.joint_names.index(n) for n in HEAD_JOINTS if n in model.joint_names]
@@ -393,7 +394,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
                      background=tuple(float(c) for c in background),
                      reprojection_px=float(np.nanmean(fit.reprojection_px)),
                      warnings=list(dict.fromkeys(warnings + fit.warnings)), clothed=clothed,
-                     facing_away=facing.away, coco17=fit.output.coco17[0].numpy().astype(np.float64))
+                     facing_away=facing.away, coco17=coco17)
 
 
 def synthesize_orbit(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
