@@ -74,7 +74,9 @@ DEPTH_TOLERANCE = 0.02  # world units: a vertex this close behind the rendered s
 HEAD_JOINTS = ("head", "eye.L", "eye.R")
 BOUNDARY_SMOOTHING = 3  # neighbour-average passes on the visible/hidden weight
 BACK_SMOOTHING = 2  # neighbour-average passes on the hidden vertices' colours
-HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampled for the hair colour
+HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampled for the hair colour ...
+FACE_ROWS = (0.55, 0.75)  # ... less what has the colour of the face's skin (these rows of the head, its middle fifth) ...
+HAIR_SHARE = 0.2  # ... when at least this share of the band is left
 
 
 @dataclass
@@ -207,8 +209,12 @@ def _smooth(values: np.ndarray, faces: np.ndarray, passes: int, update: np.ndarr
 
 
 def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.ndarray | None:
-    """Median colour of the person's pixels in the top :data:`HAIR_BAND` of the head's projected box
-    (``head_px``: projected head vertices), or None when there are none."""
+    """The hair's colour: the person's pixels in the top :data:`HAIR_BAND` of the head's projected box
+    (``head_px``: projected head vertices) less those of the face's skin colour (the median of the head's
+    :data:`FACE_ROWS`, middle fifth; a forehead under hair drawn back), their median colour
+    (:func:`humanvdm_core.clothed_proxy.median_colour`) when at least :data:`HAIR_SHARE` of the band is
+    left, else the band's per-channel median (a bald head, hair of the skin's colour); None when the
+    band holds no person."""
     if len(head_px) == 0:
         return None
     h, w = mask.shape
@@ -223,7 +229,18 @@ def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.
     band = mask[top:bottom, x0:x1 + 1] > 0.5
     if band.sum() < 4:
         return None
-    return np.median(image[top:bottom, x0:x1 + 1][band], axis=0)
+    pixels = image[top:bottom, x0:x1 + 1][band]
+    # the forehead showing in the band (hair drawn back, a high hairline) is not hair
+    from humanvdm_core.clothed_proxy import median_colour, skin_like
+
+    fy0, fy1 = (int(y_lo + f * (y_hi - y_lo)) for f in FACE_ROWS)
+    cx, half = (x0 + x1) // 2, max(1, (x1 - x0) // 5)
+    face = image[fy0:fy1, cx - half:cx + half + 1][mask[fy0:fy1, cx - half:cx + half + 1] > 0.5]
+    if len(face) >= 16:
+        hair = ~skin_like(pixels[None], median_colour(face))[0]
+        if hair.sum() >= max(4, HAIR_SHARE * len(pixels)):
+            return median_colour(pixels[hair])
+    return np.median(pixels, axis=0)
 
 
 def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image: np.ndarray, mask: np.ndarray,

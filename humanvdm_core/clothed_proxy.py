@@ -79,7 +79,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      front; hands keep their own colour;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
      shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
-     in the photo, so no face appears on the back; when the photo shows the person's back
+     in the photo, a forehead showing there left out (``head_colour``, from
+     :func:`humanvdm_core.body_prior.hair_colour`), so no face appears on the back; when the photo shows the person's back
      (``facing_away``), the unseen side is the front and the head there takes the head's own
      median colour (no face is invented).
 

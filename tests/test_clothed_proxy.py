@@ -675,3 +675,28 @@ def test_clothes_and_shoes_give_the_torso_and_feet_thickness_and_leave_the_head_
     ys = np.linspace(0.3, 0.75, 16)
     steps = np.abs(np.diff([thickness(y) for y in ys]))
     assert steps.max() < 0.6 * 2 * clothes, steps  # faded, not a ledge at the part boundary (y = 0.6)
+
+
+def test_the_hair_colour_leaves_out_a_forehead_showing_at_the_top_of_the_head():
+    """Hair drawn back (or a high hairline) shows the forehead in the top band of the head: the back of the
+    head takes the hair's colour, not a mix of hair and skin (before: the per-channel median of the band)."""
+    from humanvdm_core.body_prior import hair_colour
+
+    hair, skin = np.array([0.17, 0.12, 0.1], np.float32), np.array([0.85, 0.66, 0.55], np.float32)
+    image = np.ones((200, 200, 3), np.float32)
+    mask = np.zeros((200, 200), np.float32)
+    yy, xx = np.mgrid[:200, :200]
+    head = ((xx - 100) / 40.0) ** 2 + ((yy - 100) / 55.0) ** 2 <= 1.0
+    mask[head] = 1.0
+    image[head] = skin
+    # a thin hair cap whose middle recedes: the forehead reaches into the head's top fifth
+    cap = head & (yy < 52 + 0.02 * (xx - 100) ** 2)
+    image[cap] = hair
+    head_px = np.stack(np.nonzero(head)[::-1], axis=1).astype(np.float32)
+    got = hair_colour(image, mask, head_px)
+    assert np.abs(got - hair).max() < 0.03, got
+    # all hair in the band (or a bald head: no hair left beside the skin) keeps the band's median
+    image[head & (yy < 70)] = hair
+    assert np.abs(hair_colour(image, mask, head_px) - hair).max() < 1e-6
+    image[head] = skin
+    assert np.abs(hair_colour(image, mask, head_px) - skin).max() < 1e-6
