@@ -76,7 +76,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      body's waist line; a torso row of the neckline (:data:`NECKLINE_DEPTH` below the shoulders' top)
      that shows clothing beside skin of the face's colour (:func:`face_colour`, :data:`NECKLINE_SHARE`:
      a V-neck) takes the clothing's median only, since a top covers more of the back than of the
-     front; hands keep their own colour;
+     front; hands keep their own colour; a thick region outside the body (a held object, a hat, a
+     coat's flare) takes its own median per row, not the nearest part's;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
      shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
      in the photo, a forehead showing there left out (``head_colour``, from
@@ -127,6 +128,8 @@ SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourh
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
+LOOSE_OWN_MIN = 0.005  # a region outside the body covering this share of the mask keeps its own colours at the back ...
+LOOSE_OWN_OPEN = 0.015  # ... once thinner parts than this fraction of the frame are cut off (a sliver of background)
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -468,7 +471,8 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.nda
 
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
-                        back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None) -> np.ndarray:
+                        back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
+                        loose: np.ndarray | None = None) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -480,7 +484,10 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     With ``skin_colour`` (the face's), a torso row of the neckline (from the top of the shoulders, the
     highest arm pixel, down :data:`NECKLINE_DEPTH` of the person's height) that shows clothing beside
     skin (a V-neck, a low or open neckline) takes the clothing's colour only: a top covers more of the
-    back than of the front, up to the neck."""
+    back than of the front, up to the neck. With ``loose`` (the mask's pixels outside the body), each of its
+    connected regions at least :data:`LOOSE_OWN_OPEN` of the frame thick and :data:`LOOSE_OWN_MIN` of the
+    mask large (a held object, a hat, a coat's or a skirt's flare) takes its own median per row, not the
+    nearest body part's: a box held beside the jeans is not jeans at the back."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
@@ -497,9 +504,25 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     head = PARTS.index("head")
     back_part = np.where((back_part == head) & np.isin(front_part, [PARTS.index("torso"), PARTS.index("arms")]),
                          front_part, back_part)
+    # what lies outside the body (a held object, a hat, a coat's or a skirt's flare) takes its own colours at
+    # the back, not those of the body part nearest to it (per thick connected region, its median per row),
+    # and is no source of the parts' colours
+    regions = []
+    if loose is not None:
+        k = max(3, int(LOOSE_OWN_OPEN * size) | 1)
+        thick = cv2.morphologyEx((loose & person).astype(np.uint8), cv2.MORPH_OPEN,
+                                 cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        n, labels = cv2.connectedComponents(thick, connectivity=8)
+        regions = [labels == i for i in range(1, n) if (labels == i).sum() >= LOOSE_OWN_MIN * person.sum()]
+    kept_apart = np.logical_or.reduce(regions) if regions else np.zeros_like(person)
+
+    def shown(select: np.ndarray) -> np.ndarray:
+        rest = select & ~kept_apart
+        return rest if rest.sum() >= 4 else select
+
     for p in range(len(PARTS)):
         want = back_part == p
-        source = person & (front_part == p)
+        source = shown(person & (front_part == p))
         if not want.any() or source.sum() < 4:
             continue
         if PARTS[p] == "head" and head_colour is not None:
@@ -521,12 +544,15 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
     # not the body's waist line: one median per row over the torso and the legs together
     trunk = [PARTS.index("torso"), PARTS.index("legs")]
-    source = person & np.isin(front_part, trunk)
+    source = shown(person & np.isin(front_part, trunk))
     same = np.isin(front_part, trunk + [PARTS.index("arms"), PARTS.index("hands")]) & np.isin(back_part, trunk)
     if source.sum() >= 4 and same.any():
         per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,
                               prefer_rows=neckline)
         out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
+    for region in regions:
+        per_row = row_medians(photo, region, band)
+        out[region] = np.broadcast_to(per_row[:, None, :], photo.shape)[region]
     torso = person & (front_part == PARTS.index("torso"))
     if head_colour is not None and torso.sum() >= 16:
         # only where hair can be told from the clothes under it
@@ -832,7 +858,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bs = cv2.resize(maps["back_side"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
     fs = nearest_fill(fs, known).astype(np.int64) if known.any() else np.zeros_like(fs, np.int64)
     bs = np.where(bknown, bs, fs).astype(np.int64)
-    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin)
+    loose_full = cv2.resize((domain & ~body).astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST).astype(bool)
+    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = (cols + 0.5) * to_full / size
     v = 1.0 - (rows + 0.5) * to_full / size

@@ -700,3 +700,27 @@ def test_the_hair_colour_leaves_out_a_forehead_showing_at_the_top_of_the_head():
     assert np.abs(hair_colour(image, mask, head_px) - hair).max() < 1e-6
     image[head] = skin
     assert np.abs(hair_colour(image, mask, head_px) - skin).max() < 1e-6
+
+
+def test_a_held_box_keeps_its_own_colour_at_the_back_and_a_sliver_of_background_does_not():
+    """An orange box held beside the jeans lies outside the body: its back is orange, not the jeans' blue of
+    the nearest body part (before: the legs' median). A thin sliver of the mask outside the body (the
+    background seen between an arm and the torso) keeps the part's colour."""
+    size = 120
+    jeans, box, background = (0.15, 0.2, 0.45), (0.95, 0.5, 0.1), (1.0, 1.0, 1.0)
+    photo = np.ones((size, size, 3), np.float32)
+    photo[40:110, 45:75] = jeans
+    photo[60:90, 15:45] = box
+    photo[40:100, 75:77] = background  # a 2 px sliver the mask takes in beside the legs
+    mask = np.zeros((size, size), np.float32)
+    mask[40:110, 45:77] = 1.0
+    mask[60:90, 15:45] = 1.0
+    part = np.full((size, size), PARTS.index("legs"))
+    loose = (mask > 0.5).copy()
+    loose[40:110, 45:75] = False  # the body covers the legs only
+    out = unseen_side_colours(photo, mask, part, part, None, loose=loose)
+    assert np.allclose(out[75, 30], box, atol=0.05)
+    assert np.allclose(out[70, 76], jeans, atol=0.05)
+    assert np.allclose(out[70, 60], jeans, atol=0.05)
+    before = unseen_side_colours(photo, mask, part, part, None)
+    assert not np.allclose(before[75, 30], box, atol=0.2)
