@@ -73,9 +73,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      not carried over; arms and legs take their medians per side of the body (what one hand holds
      stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
      the torso and the legs take one median per row, so the garment's own hem decides, not the
-     body's waist line; a torso row of the neckline (:data:`NECKLINE_DEPTH` below the shoulders' top)
-     that shows clothing beside skin of the face's colour (:func:`face_colour`, :data:`NECKLINE_SHARE`:
-     a V-neck) takes the clothing's median only, since a top covers more of the back than of the
+     body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
+     below the shoulders' top) that shows clothing beside skin of the face's colour (:func:`face_colour`,
+     :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median only, since a top covers more of the back than of the
      front; hands keep their own colour; a thick region outside the body (a held object, a hat, a
      coat's flare) takes its own median per row, not the nearest part's;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
@@ -116,7 +116,7 @@ HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's c
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
-NECKLINE_DEPTH = 0.15  # ... in the rows from the shoulders' top down this fraction of the person's height
+NECKLINE_DEPTH = 0.15  # ... in the rows from the neck's base to this fraction of the person's height below the shoulders' top
 SKIN_INFLUENCES = 4
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
@@ -481,10 +481,10 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     torso and the legs share one median per row where both the nearest and the farthest surface are
     one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
     the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
-    With ``skin_colour`` (the face's), a torso row of the neckline (from the top of the shoulders, the
-    highest arm pixel, down :data:`NECKLINE_DEPTH` of the person's height) that shows clothing beside
-    skin (a V-neck, a low or open neckline) takes the clothing's colour only: a top covers more of the
-    back than of the front, up to the neck. With ``loose`` (the mask's pixels outside the body), each of its
+    With ``skin_colour`` (the face's), a torso row of the neckline (from the torso's top, the base of the
+    neck, to :data:`NECKLINE_DEPTH` of the person's height below the shoulders' top, the highest arm
+    pixel) that shows clothing beside skin (a collar, a V-neck, a low or open neckline) takes the
+    clothing's colour only: a top covers more of the back than of the front, up to the neck. With ``loose`` (the mask's pixels outside the body), each of its
     connected regions at least :data:`LOOSE_OWN_OPEN` of the frame thick and :data:`LOOSE_OWN_MIN` of the
     mask large (a held object, a hat, a coat's or a skirt's flare) takes its own median per row, not the
     nearest body part's: a box held beside the jeans is not jeans at the back."""
@@ -492,12 +492,16 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
     clothed = ~skin_like(photo, skin_colour) if skin_colour is not None else None
-    # ... in the neckline's rows: from the top of the shoulders (above it the neck is bare at the back as
-    # in front) down NECKLINE_DEPTH of the person's height (below it a hem's rows keep their plain median)
+    # ... in the neckline's rows: from the torso's top (the base of the neck: a row there that shows a collar
+    # beside the neck is the collar at the back, one that shows only the neck stays skin; or the shoulders'
+    # top, the highest arm pixel, if higher) down NECKLINE_DEPTH of the person's height below the shoulders'
+    # top (below it a hem's rows keep their plain median)
     arm_rows = np.nonzero((person & (front_part == PARTS.index("arms"))).any(axis=1))[0]
     rows = np.nonzero(person.any(axis=1))[0]
     top = int(arm_rows.min()) if len(arm_rows) else 0
-    neckline = (top, top + int(NECKLINE_DEPTH * (rows.max() - rows.min() + 1))) if len(rows) else None
+    torso_rows = np.nonzero((person & (front_part == PARTS.index("torso"))).any(axis=1))[0]
+    start = min(top, int(torso_rows.min())) if len(torso_rows) else top
+    neckline = (start, top + int(NECKLINE_DEPTH * (rows.max() - rows.min() + 1))) if len(rows) else None
     out = nearest_fill(photo, person).astype(np.float32)
     # the back of the neck behind a collar or a shoulder is the clothing's, not the hair's: the head's
     # colour goes only behind what the photo shows as the head

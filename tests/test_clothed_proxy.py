@@ -724,3 +724,28 @@ def test_a_held_box_keeps_its_own_colour_at_the_back_and_a_sliver_of_background_
     assert np.allclose(out[70, 60], jeans, atol=0.05)
     before = unseen_side_colours(photo, mask, part, part, None)
     assert not np.allclose(before[75, 30], box, atol=0.2)
+
+
+def test_a_collar_beside_the_neck_above_the_arms_is_the_shirt_at_the_back():
+    """A shirt whose shoulders are torso down to row 30, where the arms begin: in rows 15-30 the photo shows
+    the collar beside the neck's skin (the torso's top is row 15). The back there is the shirt, not the
+    neck's skin (before: the neckline started at the arms' top, row 30, and these rows took their median,
+    skin); a row of bare neck (rows 10-15) stays skin."""
+    size = 100
+    shirt, skin = np.array((0.93, 0.93, 0.93), np.float32), np.array((0.85, 0.62, 0.5), np.float32)
+    hair = np.array((0.15, 0.1, 0.08), np.float32)
+    photo = np.zeros((size, size, 3), np.float32)
+    photo[:] = shirt
+    photo[:10] = hair
+    photo[2:10, 40:60] = skin  # the face
+    photo[10:15, 38:62] = skin  # the neck ...
+    photo[15:30, 26:74] = skin  # ... then the open collar's skin (60 % of the row) between its two sides
+    mask = np.zeros((size, size), np.float32)
+    mask[:10, 35:65] = mask[10:15, 38:62] = mask[15:, 10:90] = 1.0
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:10] = PARTS.index("head")
+    part[30:, :20] = part[30:, 80:] = PARTS.index("arms")
+    face = face_colour(photo, mask, part, hair)
+    out = unseen_side_colours(photo, mask, part, part, hair, skin_colour=face)
+    assert np.allclose(out[22, 50], shirt, atol=0.05)  # the collar's rows: the shirt at the back
+    assert np.allclose(out[12, 50], skin, atol=0.05)  # the bare neck above the collar
