@@ -75,15 +75,15 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      the torso and the legs take one median per row, so the garment's own hem decides, not the
      body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
      below the shoulders' top) that shows clothing beside skin of the face's colour (:func:`face_colour`,
-     :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median only, since a top covers more of the back than of the
-     front; hands keep their own colour; a thick region outside the body (a held object, a hat, a
-     coat's flare) takes its own median per row, not the nearest part's;
+     :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median only, since a top covers
+     more of the back than of the front; hands keep their own colour; a thick region outside the body
+     (a held object, a hat, a coat's flare) takes its own median per row, not the nearest part's;
    * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
      shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
      in the photo, a forehead showing there left out (``head_colour``, from
-     :func:`humanvdm_core.body_prior.hair_colour`), so no face appears on the back; when the photo shows the person's back
-     (``facing_away``), the unseen side is the front and the head there takes the head's own
-     median colour (no face is invented).
+     :func:`humanvdm_core.body_prior.hair_colour`), so no face appears on the back; when the photo
+     shows the person's back (``facing_away``), the unseen side is the front and the head there takes
+     the head's own median colour (no face is invented).
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -116,7 +116,7 @@ HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's c
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
-NECKLINE_DEPTH = 0.15  # ... in the rows from the neck's base to this fraction of the person's height below the shoulders' top
+NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
 SKIN_INFLUENCES = 4
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
@@ -484,10 +484,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     With ``skin_colour`` (the face's), a torso row of the neckline (from the torso's top, the base of the
     neck, to :data:`NECKLINE_DEPTH` of the person's height below the shoulders' top, the highest arm
     pixel) that shows clothing beside skin (a collar, a V-neck, a low or open neckline) takes the
-    clothing's colour only: a top covers more of the back than of the front, up to the neck. With ``loose`` (the mask's pixels outside the body), each of its
-    connected regions at least :data:`LOOSE_OWN_OPEN` of the frame thick and :data:`LOOSE_OWN_MIN` of the
-    mask large (a held object, a hat, a coat's or a skirt's flare) takes its own median per row, not the
-    nearest body part's: a box held beside the jeans is not jeans at the back."""
+    clothing's colour only: a top covers more of the back than of the front, up to the neck. With
+    ``loose`` (the mask's pixels outside the body), each of its connected regions at least
+    :data:`LOOSE_OWN_OPEN` of the frame thick and :data:`LOOSE_OWN_MIN` of the mask large (a held object,
+    a hat, a coat's or a skirt's flare) takes its own median per row, not the nearest body part's, and
+    is left out of the parts' medians: a box held beside the jeans is not jeans at the back."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
@@ -516,8 +517,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         k = max(3, int(LOOSE_OWN_OPEN * size) | 1)
         thick = cv2.morphologyEx((loose & person).astype(np.uint8), cv2.MORPH_OPEN,
                                  cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-        n, labels = cv2.connectedComponents(thick, connectivity=8)
-        regions = [labels == i for i in range(1, n) if (labels == i).sum() >= LOOSE_OWN_MIN * person.sum()]
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(thick, connectivity=8)
+        regions = [labels == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= LOOSE_OWN_MIN * person.sum()]
     kept_apart = np.logical_or.reduce(regions) if regions else np.zeros_like(person)
 
     def shown(select: np.ndarray) -> np.ndarray:
@@ -862,7 +863,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bs = cv2.resize(maps["back_side"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
     fs = nearest_fill(fs, known).astype(np.int64) if known.any() else np.zeros_like(fs, np.int64)
     bs = np.where(bknown, bs, fs).astype(np.int64)
-    loose_full = cv2.resize((domain & ~body).astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST).astype(bool)
+    loose_full = cv2.resize((domain & ~body).astype(np.uint8), (size, size),
+                            interpolation=cv2.INTER_NEAREST).astype(bool)  # the mask outside the body
     back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = (cols + 0.5) * to_full / size
