@@ -70,7 +70,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      body surface there; outside the body, the nearest part), the median colour of that part's
      visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments keep their
      colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
-     not carried over; arms and legs take their medians per side of the body (what one hand holds
+     not carried over, nor a wider print on the torso a few rows tall whose colour does not recur
+     (:func:`without_print_runs`; stripes recur and stay); arms and legs take their medians per side of the body (what one hand holds
      stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
      the torso and the legs take one median per row, so the garment's own hem decides, not the
      body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
@@ -130,6 +131,10 @@ SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides fo
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
 LOOSE_OWN_MIN = 0.005  # a region outside the body covering this share of the mask keeps its own colours at the back ...
 LOOSE_OWN_OPEN = 0.015  # ... once thinner parts than this fraction of the frame are cut off (a sliver of background)
+PRINT_RUN = (0.03, 0.1)  # rows (fraction of the person's height) a print wider than half the garment spans ...
+PRINT_STEP = 0.12  # ... its colour this far (RGB) from the garment's running median ...
+PRINT_WINDOW = 0.1  # ... over this fraction of the person's height each side ...
+PRINT_SAME = 0.08  # ... the garment above and below it this close to each other, and its colour not recurring
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 # joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
@@ -469,6 +474,43 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.nda
     return out[pick]
 
 
+def without_print_runs(per_row: np.ndarray, shown: np.ndarray, height: int, band: int) -> np.ndarray:
+    """``per_row`` (H, C) with each run of rows that looks like a print wider than half the part replaced by
+    the colours around it: a run :data:`PRINT_RUN` (min, max) of ``height`` tall whose colour stands more
+    than :data:`PRINT_STEP` from the garment's running median (over :data:`PRINT_WINDOW` of ``height`` each
+    side), the garment above and below it (``band`` rows beyond it: the medians' window smooths the run
+    into them) within :data:`PRINT_SAME` of each other, and whose colour fewer other rows of the part have
+    than half its own (a striped shirt's stripes recur and stay; the few rows of a transition between
+    two garments do not count). ``shown``: (H,) bool, the rows the part is seen in."""
+    rows = np.nonzero(shown)[0]
+    if len(rows) < 3 or height <= 0:
+        return per_row
+    out = per_row.copy()
+    y0 = int(rows.min())
+    c = per_row[y0:int(rows.max()) + 1]
+    n = len(c)
+    w = max(1, int(PRINT_WINDOW * height))
+    ref = np.stack([np.median(c[max(0, i - w):i + w + 1], axis=0) for i in range(n)])
+    off = np.append(np.linalg.norm(c - ref, axis=1) > PRINT_STEP, False)
+    starts = np.nonzero(off[1:] & ~off[:-1])[0] + 1
+    ends = np.nonzero(off[:-1] & ~off[1:])[0] + 1
+    for start, end in zip(np.r_[[0] if off[0] else [], starts].astype(int), ends, strict=False):
+        a, b = start - band, end + band
+        if not PRINT_RUN[0] * height <= end - start <= PRINT_RUN[1] * height or a < 1 or b >= n:
+            continue
+        above, below = c[a - 1], c[b]
+        if np.linalg.norm(above - below) > PRINT_SAME:
+            continue
+        colour = np.median(c[start:end], axis=0)
+        elsewhere = np.ones(n, bool)
+        elsewhere[a:b] = False
+        if (np.linalg.norm(c[elsewhere] - colour, axis=1) <= PRINT_SAME).sum() >= max(3, (end - start) // 2):
+            continue
+        t = ((np.arange(a, b) - a + 0.5) / (b - a))[:, None]
+        out[y0 + a:y0 + b] = (1 - t) * above + t * below
+    return out
+
+
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
                         back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
@@ -499,6 +541,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     # top (below it a hem's rows keep their plain median)
     arm_rows = np.nonzero((person & (front_part == PARTS.index("arms"))).any(axis=1))[0]
     rows = np.nonzero(person.any(axis=1))[0]
+    height = int(rows.max() - rows.min() + 1) if len(rows) else 0
     top = int(arm_rows.min()) if len(arm_rows) else 0
     torso_rows = np.nonzero((person & (front_part == PARTS.index("torso"))).any(axis=1))[0]
     start = min(top, int(torso_rows.min())) if len(torso_rows) else top
@@ -537,6 +580,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         else:
             prefer = source & clothed if clothed is not None and PARTS[p] == "torso" else None
             per_row = row_medians(photo, source, band, prefer, prefer_rows=neckline)
+            if PARTS[p] == "torso":
+                per_row = without_print_runs(per_row, source.any(axis=1), height, band)
             out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
             if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
                 # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
@@ -554,6 +599,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     if source.sum() >= 4 and same.any():
         per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,
                               prefer_rows=neckline)
+        per_row = without_print_runs(per_row, source.any(axis=1), height, band)
         out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
     for region in regions:
         per_row = row_medians(photo, region, band)

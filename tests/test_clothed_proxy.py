@@ -749,3 +749,30 @@ def test_a_collar_beside_the_neck_above_the_arms_is_the_shirt_at_the_back():
     out = unseen_side_colours(photo, mask, part, part, hair, skin_colour=face)
     assert np.allclose(out[22, 50], shirt, atol=0.05)  # the collar's rows: the shirt at the back
     assert np.allclose(out[12, 50], skin, atol=0.05)  # the bare neck above the collar
+
+
+def test_a_print_wider_than_half_the_shirt_is_not_carried_to_the_back_and_stripes_are():
+    """A red shirt (rows 20-70 of a 100-row person) with a white print across 70 % of its width in rows
+    40-46: the back there is red (before: the rows' median, white). The same shirt with white stripes
+    of that width every 10 rows keeps its stripes at the back: their colour recurs."""
+    size = 100
+    red, white, blue = (np.array(c, np.float32) for c in ((0.8, 0.1, 0.15), (0.95, 0.95, 0.95), (0.15, 0.2, 0.4)))
+    mask = np.zeros((size, size), np.float32)
+    mask[:, 30:70] = 1.0
+    part = np.full((size, size), PARTS.index("legs"))
+    part[:20] = PARTS.index("head")
+    part[20:70] = PARTS.index("torso")
+    photo = np.ones((size, size, 3), np.float32)
+    photo[:20, 30:70] = (0.85, 0.65, 0.5)
+    photo[20:70, 30:70] = red
+    photo[70:, 30:70] = blue
+    printed = photo.copy()
+    printed[40:46, 36:64] = white
+    out = unseen_side_colours(printed, mask, part, part, None)
+    assert np.allclose(out[43, 50], red, atol=0.05), out[43, 50]
+    assert np.allclose(out[60, 50], red, atol=0.05) and np.allclose(out[85, 50], blue, atol=0.05)
+    striped = photo.copy()
+    for y in range(25, 70, 10):
+        striped[y:y + 5, 36:64] = white
+    out = unseen_side_colours(striped, mask, part, part, None)
+    assert np.allclose(out[47, 50], white, atol=0.05), out[47, 50]  # a stripe's middle row
