@@ -492,9 +492,10 @@ def without_print_runs(per_row: np.ndarray, shown: np.ndarray, height: int, band
     w = max(1, int(PRINT_WINDOW * height))
     ref = np.stack([np.median(c[max(0, i - w):i + w + 1], axis=0) for i in range(n)])
     off = np.append(np.linalg.norm(c - ref, axis=1) > PRINT_STEP, False)
+    off[0] = False  # a run at the top has no garment above it
     starts = np.nonzero(off[1:] & ~off[:-1])[0] + 1
     ends = np.nonzero(off[:-1] & ~off[1:])[0] + 1
-    for start, end in zip(np.r_[[0] if off[0] else [], starts].astype(int), ends, strict=False):
+    for start, end in zip(starts, ends, strict=True):
         a, b = start - band, end + band
         if not PRINT_RUN[0] * height <= end - start <= PRINT_RUN[1] * height or a < 1 or b >= n:
             continue
