@@ -71,8 +71,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments keep their
      colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
      not carried over, nor a wider print on the torso a few rows tall whose colour does not recur
-     (:func:`without_print_runs`; stripes recur and stay); arms and legs take their medians per side of the body (what one hand holds
-     stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
+     (:func:`without_print_runs`; stripes recur and stay); arms and legs take their medians per side
+     of the body (what one hand holds stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
      the torso and the legs take one median per row, so the garment's own hem decides, not the
      body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
      below the shoulders' top) that shows clothing beside skin of the face's colour (:func:`face_colour`,
@@ -519,7 +519,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
-    objects narrower than half the part are not carried over; with ``front_side`` / ``back_side`` (the
+    objects narrower than half the part are not carried over (on the torso, nor a wider print a few
+    rows tall: :func:`without_print_runs`); with ``front_side`` / ``back_side`` (the
     body's side per pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the
     torso and the legs share one median per row where both the nearest and the farthest surface are
     one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
@@ -546,7 +547,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     top = int(arm_rows.min()) if len(arm_rows) else 0
     torso_rows = np.nonzero((person & (front_part == PARTS.index("torso"))).any(axis=1))[0]
     start = min(top, int(torso_rows.min())) if len(torso_rows) else top
-    neckline = (start, top + int(NECKLINE_DEPTH * (rows.max() - rows.min() + 1))) if len(rows) else None
+    neckline = (start, top + int(NECKLINE_DEPTH * height)) if len(rows) else None
     out = nearest_fill(photo, person).astype(np.float32)
     # the back of the neck behind a collar or a shoulder is the clothing's, not the hair's: the head's
     # colour goes only behind what the photo shows as the head
