@@ -17,6 +17,13 @@ ground truth, not inputs):
   and of the pose model's segmentation without the guided-filter refinement, both bilinearly
   upsampled: why the default is the pose's mask, refined.
 
+``composites``: opaque photos with a known silhouette, as a camera gives them: each photo with an alpha
+cut-out and each scan in ../shared/fixtures/scans (rendered at azimuth 0, elevation 10 deg, 768²; the
+stylised Soldier left out) composited over white, a plain wall with a floor, and clutter
+(``benchmarks.stability.clutter_background``); per composite the segmentation's IoU with the alpha
+and its false positives / negatives (share of the true silhouette), untrimmed (``trim=False``) and
+trimmed (the default, ``trim_background``), and the seconds of each ``detect_person``.
+
 Run:  .venv/bin/python benchmarks/bench_perception.py [--repeats 3]
 Writes benchmarks/results/perception.json.
 """
@@ -97,6 +104,70 @@ def bench_photo(path: Path, repeats: int) -> dict:
     return row
 
 
+BACKGROUNDS = ("white", "wall", "clutter")
+
+
+def background(kind: str, height: int, width: int) -> np.ndarray:
+    """(H, W, 3) float: plain white, a warm wall with a darker floor (its lowest tenth), or clutter."""
+    if kind == "white":
+        return np.ones((height, width, 3), np.float32)
+    if kind == "wall":
+        img = np.empty((height, width, 3), np.float32)
+        img[:] = (0.78, 0.74, 0.66)
+        img[int(0.9 * height):] = (0.45, 0.36, 0.28)
+        return img
+    from benchmarks.stability import clutter_background
+
+    return clutter_background(height, width)
+
+
+def cutouts() -> dict[str, np.ndarray]:
+    """Name -> (H, W, 4) float RGBA: the fixture photos with an alpha cut-out and the scans' front renders."""
+    out = {}
+    for path in sorted(PHOTOS.glob("*.png")):
+        photo = load_photo(path)
+        if photo.alpha is not None and 0.01 <= float(np.mean(photo.alpha < 0.5)) <= 0.99:
+            out[path.stem] = np.dstack([photo.rgb, photo.alpha])
+    from benchmarks.bench_pipeline import ELEVATION, WHITE
+    from benchmarks.bench_protocol import SCANS, find_scans
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    if SCANS.is_dir():
+        cam = orbit_cameras(1, 768, elevation_deg=ELEVATION, radius=framing_radius(), azimuths_deg=np.array([0.0]))
+        for folder in find_scans(None):
+            if "soldier" in folder.name:
+                continue
+            out[folder.name] = render_views(normalize_scan(load_scan(folder)), cam, WHITE).rgba[0]
+    return out
+
+
+def bench_composites() -> dict:
+    rows = {}
+    for name, rgba in cutouts().items():
+        truth = rgba[..., 3] > 0.5
+        for kind in BACKGROUNDS:
+            a = rgba[..., 3:]
+            rgb = rgba[..., :3] * a + background(kind, *rgba.shape[:2]) * (1.0 - a)
+            photo = Photo(rgb=np.ascontiguousarray(rgb, np.float32), alpha=None, path=Path(f"{name}_{kind}.png"),
+                          original_size=(rgba.shape[1], rgba.shape[0]))
+            row = {}
+            for label, trim in (("untrimmed", False), ("trimmed", True)):
+                t = time.perf_counter()
+                mask = detect_person(photo, trim=trim).mask > 0.5
+                row[label] = {"iou": round(iou(mask, truth), 4),
+                              "false_positive": round(float((mask & ~truth).sum() / truth.sum()), 4),
+                              "false_negative": round(float((~mask & truth).sum() / truth.sum()), 4),
+                              "detect_s": round(time.perf_counter() - t, 3)}
+            rows[f"{name}_{kind}"] = row
+            print(f"{name}_{kind}", row)
+    means = {label: {k: round(float(np.mean([r[label][k] for r in rows.values()])), 4)
+                     for k in ("iou", "false_positive", "false_negative", "detect_s")}
+             for label in ("untrimmed", "trimmed")}
+    return {"per_photo": rows, "mean": means}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -114,7 +185,8 @@ def main() -> int:
     for path in photos:
         rows[path.name] = bench_photo(path, args.repeats)
         print(path.name, rows[path.name])
-    result = {"detect_first_s": round(first, 3), "repeats": args.repeats, "photos": rows}
+    result = {"detect_first_s": round(first, 3), "repeats": args.repeats, "photos": rows,
+              "composites": bench_composites()}
     out = save_result("perception", result, command=f"benchmarks/bench_perception.py --repeats {args.repeats}")
     print(f"wrote {out}")
     return 0

@@ -7,7 +7,10 @@ Contract of :func:`detect_person`:
   ``"alpha"`` when the photo's alpha channel is meaningful (1%..99% of the pixels transparent),
   else ``"segmentation"``: MediaPipe Pose's person segmentation, edge-refined with a guided filter
   on the photo (measured better than the selfie-segmentation model on the fixtures; see the
-  benchmark). The selfie-segmentation model is used only to count people.
+  benchmark), then trimmed of the background it covers (:func:`trim_background`, unless
+  ``trim=False``): the segmentation is soft and blurry, so it spans the narrow gaps between the arms
+  and the body or between the legs, and a halo along its edge, where the photo shows the wall or the
+  floor. The selfie-segmentation model is used only to count people.
 - ``Detection.keypoints`` (17, 2) float32 pixel coordinates (x right, y down, origin at the
   top-left corner of the image, in ``photo.rgb``'s pixels) in :data:`COCO17_NAMES` order, and
   ``confidences`` (17,) float32 in [0, 1]: MediaPipe's visibility, set to 0 for a joint outside the
@@ -87,6 +90,13 @@ BACKGROUND_DISTANCE = 0.12  # RGB distance within which a pixel has the backgrou
 PLAIN_SHARE = 0.9  # the background is plain when at least this share of the border has its colour
 HAND_REACH = 0.08  # a held object comes this close to a wrist (share of the person's height)
 HELD_MIN_AREA = 0.02  # a held object covers at least this share of the person's mask (else: an edge fringe)
+SURE_PERSON = 0.97  # the segmentation at least this sure, and TRIM_INNER inside its edge, is the person ...
+TRIM_INNER = 0.01  # ... share of the person's height
+TRIM_OUTER = 0.02  # the ring outside the mask's edge that GrabCut learns the background from, share of the height
+TRIM_LIKELIHOOD = 2.0  # a pixel leaves the mask only where the background explains its colour e^this times better
+TRIM_MARGIN = 0.05  # GrabCut runs on the person's box widened by this share of their height ...
+TRIM_SIDE = 768  # ... scaled to at most this long side ...
+TRIM_ITERATIONS = 4  # ... for this many iterations
 WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
 
@@ -201,6 +211,80 @@ def _refine(mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
     return fine.astype(np.float32)
 
 
+def _gmm_log_likelihood(model: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Log-likelihood (N,) of colours ``x`` (N, 3) under one of OpenCV GrabCut's colour models (1, 65):
+    five Gaussians stored as their weights, then their means (5 x 3), then their covariances (5 x 9)."""
+    m = model.reshape(-1)
+    weights, means, covs = m[:5], m[5:20].reshape(5, 3), m[20:65].reshape(5, 3, 3)
+    terms = []
+    for w, mu, cov in zip(weights, means, covs, strict=True):
+        if w <= 0:
+            continue
+        cov = cov + np.eye(3) * 1e-2
+        d = x - mu
+        terms.append(np.log(w) - 0.5 * np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d)
+                     - 0.5 * np.log(np.linalg.det(cov)))
+    return np.logaddexp.reduce(np.stack(terms), axis=0) if terms else np.full(len(x), -np.inf)
+
+
+def trim_background(mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """``mask`` (H, W) float in [0, 1] with the background it covers taken out; ``rgb`` the photo.
+
+    The mask is sure where it is at least :data:`SURE_PERSON` and :data:`TRIM_INNER` of the person's
+    height inside its edge (the person), and far from it (more than :data:`TRIM_OUTER` outside: the
+    background). In between, OpenCV's GrabCut, on the person's box widened by :data:`TRIM_MARGIN` at most
+    :data:`TRIM_SIDE` px, learns a colour model of each from the photo and cuts along the photo's edges. The mask only shrinks: a
+    pixel leaves it where GrabCut says background and the background's model explains its colour at
+    least e^:data:`TRIM_LIKELIHOOD` times better than the person's (a light garment against a light
+    wall is kept). The result keeps the mask's soft edges: min(mask, the cut edge-refined on the photo at
+    GrabCut's scale). Deterministic: OpenCV's generator is seeded before each cut."""
+    person = mask > 0.5
+    ys, xs = np.nonzero(person)
+    if ys.size == 0:
+        return mask
+    h, w = mask.shape
+    height = int(ys.max() - ys.min() + 1)
+    pad = int(TRIM_MARGIN * height) + 2
+    y0, y1 = max(0, ys.min() - pad), min(h, ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(w, xs.max() + pad + 1)
+    crop_rgb, crop_mask = rgb[y0:y1, x0:x1], mask[y0:y1, x0:x1]
+    s = min(1.0, TRIM_SIDE / max(crop_rgb.shape[:2]))
+    size = (max(1, round(crop_rgb.shape[1] * s)), max(1, round(crop_rgb.shape[0] * s)))
+    small_rgb = cv2.resize(crop_rgb, size, interpolation=cv2.INTER_AREA) if s < 1 else crop_rgb
+    small = cv2.resize(crop_mask, size, interpolation=cv2.INTER_AREA) if s < 1 else crop_mask
+    inside = small > 0.5
+
+    def disc(fraction: float) -> np.ndarray:
+        r = max(1, int(fraction * height * s))
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+    sure = (cv2.erode(inside.astype(np.uint8), disc(TRIM_INNER)) > 0) & (small >= SURE_PERSON)
+    near = cv2.dilate(inside.astype(np.uint8), disc(TRIM_OUTER)) > 0
+    labels = np.full(inside.shape, cv2.GC_BGD, np.uint8)
+    labels[near] = cv2.GC_PR_BGD
+    labels[inside] = cv2.GC_PR_FGD
+    labels[sure] = cv2.GC_FGD
+    image = np.ascontiguousarray(np.clip(np.rint(small_rgb * 255.0), 0, 255).astype(np.uint8))
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)  # GrabCut seeds its colour models with k-means on OpenCV's global generator
+    cv2.grabCut(image, labels, None, bgd, fgd, TRIM_ITERATIONS, cv2.GC_INIT_WITH_MASK)
+    cut = inside & (labels != cv2.GC_FGD) & (labels != cv2.GC_PR_FGD)
+    if cut.any():
+        colours = image[cut].astype(np.float64)
+        clear = _gmm_log_likelihood(bgd, colours) - _gmm_log_likelihood(fgd, colours) >= TRIM_LIKELIHOOD
+        cut[cut] = clear
+    if not cut.any():
+        return mask
+    keep = (inside & ~cut).astype(np.float32)
+    radius = max(1, round(max(keep.shape) / 512))
+    keep = cv2.ximgproc.guidedFilter(np.ascontiguousarray(small_rgb, np.float32), keep, radius, 1e-3)
+    if s < 1:  # the full-size crop never goes through the filter: a 12,000-px photo stays in memory bounds
+        keep = cv2.resize(keep, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
+    out = mask.copy()
+    out[y0:y1, x0:x1] = np.minimum(crop_mask, np.clip(keep, 0.0, 1.0))
+    return out.astype(np.float32)
+
+
 def _describe(names: list[str]) -> str:
     return ", ".join(n.replace("_", " ") for n in names)
 
@@ -296,12 +380,13 @@ def _person_window(photo: Photo) -> tuple[int, int, int, int] | None:
     return None
 
 
-def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -> Detection:
-    """Find the person in ``photo``: mask, COCO-17 keypoints, bbox, warnings (module docstring)."""
+def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, trim: bool = True) -> Detection:
+    """Find the person in ``photo``: mask, COCO-17 keypoints, bbox, warnings (module docstring);
+    ``trim=False`` keeps the segmentation's mask as it is (no :func:`trim_background`)."""
     if not isinstance(photo, Photo):
         photo = load_photo(photo)
     try:
-        return _detect(photo, refuse_multiple)
+        return _detect(photo, refuse_multiple, trim)
     except _NoPerson:
         if max(photo.height, photo.width) < WIDE_ASPECT * min(photo.height, photo.width):
             raise
@@ -309,7 +394,7 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -
         if box is None:
             raise
     x0, y0, x1, y1 = box
-    det = _detect(_crop(photo, box), refuse_multiple)
+    det = _detect(_crop(photo, box), refuse_multiple, trim)
     mask = np.zeros((photo.height, photo.width), np.float32)
     mask[y0:y1, x0:x1] = det.mask
     bx0, by0, bx1, by1 = det.bbox
@@ -320,7 +405,7 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False) -
     return det
 
 
-def _detect(photo: Photo, refuse_multiple: bool) -> Detection:
+def _detect(photo: Photo, refuse_multiple: bool, trim: bool = True) -> Detection:
     mp_pose, mp_selfie = _mediapipe()
     H, W = photo.height, photo.width
     warnings = list(photo.notes)
@@ -390,6 +475,7 @@ def _detect(photo: Photo, refuse_multiple: bool) -> Detection:
         source = "alpha"
     else:
         mask = _refine(person.segmentation, photo.rgb)
+        mask = trim_background(mask, photo.rgb) if trim else mask
         source = "segmentation"
     if len(big) > 1:
         keep = cv2.resize(_dilate(chosen_region, 0.01).astype(np.uint8), (W, H),
