@@ -297,6 +297,30 @@ def test_a_held_object_outside_the_outline_joins_the_mask_on_a_plain_background(
 
 
 @needs_mediapipe
+def test_a_held_object_joins_the_mask_against_a_wall_and_a_floor(ryota, offline):
+    """A background of two colours (a wall and the floor, as most photos taken indoors show) is plain
+    enough to tell a held box from it; before, only a one-colour backdrop was."""
+    alone = detect_person(ryota)
+    x, y = alone.keypoints[IDX["right_wrist"]]
+    h = ryota.height
+    box = (slice(int(y), int(y + 0.15 * h)), slice(int(x - 0.12 * h), int(x)))
+    rgb = ryota.rgb.copy()
+    backdrop = alone.mask < 0.5
+    rows = np.arange(h)[:, None] >= int(0.88 * h)
+    rgb[backdrop & ~rows] = (0.78, 0.74, 0.66)  # the wall
+    rgb[backdrop & rows] = (0.45, 0.36, 0.28)  # the floor
+    rgb[box] = (0.95, 0.5, 0.1)
+    det = detect_person(_photo(rgb, "room.png"))
+    held = np.zeros(det.mask.shape, bool)
+    held[box] = True
+    outside = held & (alone.mask < 0.5)
+    assert outside.sum() > 0.02 * (alone.mask > 0.5).sum()
+    assert (det.mask[outside] > 0.5).mean() > 0.95
+    assert ((det.mask > 0.5) & ~held & (alone.mask < 0.5)).sum() < 0.05 * outside.sum()  # not the floor
+    assert any("room.png: something the person holds" in w for w in det.warnings)
+
+
+@needs_mediapipe
 def test_the_wall_seen_between_the_arms_and_the_body_leaves_the_mask(tmp_path, offline):
     """MediaPipe's soft segmentation spans the narrow gaps between the arms and the body; on an opaque
     photo against a skin-coloured wall, the trimmed mask leaves most of them out, never grows, and

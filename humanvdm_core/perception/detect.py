@@ -45,9 +45,10 @@ Contract of :func:`detect_person`:
     ``Detection.missing``, and detection goes on.
   * Notes from loading (e.g. a downscaled huge photo) are copied into ``warnings``.
 - Held objects (a bag, a box, a binder held away from the body): MediaPipe's person segmentation
-  leaves them out. On a plain background (:func:`plain_background`: the photo's border within
-  :data:`BACKGROUND_DISTANCE` of its median colour, at least :data:`PLAIN_SHARE` of it), whatever
-  differs from that colour, lies outside the person's mask, touches it, reaches within
+  leaves them out. On a plain background (:func:`background_colours`: at least :data:`PLAIN_SHARE` of
+  the photo's border within :data:`BACKGROUND_DISTANCE` of one of at most :data:`BACKGROUND_COLOURS`
+  colours: a studio backdrop, or a wall and the floor), whatever differs from those colours, lies
+  outside the person's mask, touches it, reaches within
   :data:`HAND_REACH` of the person's height of a detected wrist and covers at least
   :data:`HELD_MIN_AREA` of the mask is added to the mask, with a warning
   (:func:`held_objects`). Not with an alpha cut-out (the user's mask is the mask) nor on a busy
@@ -87,7 +88,8 @@ OTHER_PERSON_AREA = 0.2  # another silhouette counts if at least this fraction o
 _TORSO = (11, 12, 23, 24)  # BlazePose shoulders and hips
 BORDER = 0.02  # the photo's border band (share of the short side) that shows the background
 BACKGROUND_DISTANCE = 0.12  # RGB distance within which a pixel has the background's colour
-PLAIN_SHARE = 0.9  # the background is plain when at least this share of the border has its colour
+PLAIN_SHARE = 0.9  # the background is plain when at least this share of the border has one of its colours ...
+BACKGROUND_COLOURS = 2  # ... of at most this many (a wall and the floor)
 HAND_REACH = 0.08  # a held object comes this close to a wrist (share of the person's height)
 HELD_MIN_AREA = 0.02  # a held object covers at least this share of the person's mask (else: an edge fringe)
 SURE_PERSON = 0.97  # the segmentation at least this sure, and TRIM_INNER inside its edge, is the person ...
@@ -289,29 +291,40 @@ def _describe(names: list[str]) -> str:
     return ", ".join(n.replace("_", " ") for n in names)
 
 
-def plain_background(rgb: np.ndarray) -> np.ndarray | None:
-    """The background colour (3,) of a photo whose border is (nearly) one colour, else None."""
+def background_colours(rgb: np.ndarray) -> np.ndarray | None:
+    """The colours (k, 3), k <= :data:`BACKGROUND_COLOURS`, of a photo whose border is (nearly) that
+    few colours: the fewest k-means centres of the border's pixels that leave at most
+    1 - :data:`PLAIN_SHARE` of them farther than :data:`BACKGROUND_DISTANCE` from every centre; else None."""
     h, w = rgb.shape[:2]
     b = max(1, int(round(BORDER * min(h, w))))
     border = np.concatenate([rgb[:b].reshape(-1, 3), rgb[-b:].reshape(-1, 3),
-                             rgb[:, :b].reshape(-1, 3), rgb[:, -b:].reshape(-1, 3)])
-    colour = np.median(border, axis=0)
-    near = np.linalg.norm(border - colour, axis=1) < BACKGROUND_DISTANCE
-    return colour.astype(np.float32) if near.mean() >= PLAIN_SHARE else None
+                             rgb[:, :b].reshape(-1, 3), rgb[:, -b:].reshape(-1, 3)]).astype(np.float32)
+    border = border[:: max(1, len(border) // 20000)]
+    colour = np.median(border, axis=0, keepdims=True)
+    if np.mean(np.linalg.norm(border - colour, axis=1) < BACKGROUND_DISTANCE) >= PLAIN_SHARE:
+        return colour.astype(np.float32)
+    for k in range(2, BACKGROUND_COLOURS + 1):
+        cv2.setRNGSeed(k)
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 1e-3)
+        _, _, centres = cv2.kmeans(border, k, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
+        near = np.linalg.norm(border[:, None] - centres[None], axis=2).min(axis=1) < BACKGROUND_DISTANCE
+        if near.mean() >= PLAIN_SHARE:
+            return centres.astype(np.float32)
+    return None
 
 
 def held_objects(rgb: np.ndarray, mask: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarray:
     """(H, W) bool: what the person holds outside their mask (module docstring); empty when the
     background is not plain or no wrist is detected."""
     none = np.zeros(mask.shape, bool)
-    colour = plain_background(rgb)
+    colours = background_colours(rgb)
     person = mask > 0.5
     wrists = [keypoints[i] for i in (9, 10) if confidences[i] >= MIN_CONFIDENCE]
-    if colour is None or not wrists or not person.any():
+    if colours is None or not wrists or not person.any():
         return none
     ys = np.nonzero(person.any(axis=1))[0]
     reach = HAND_REACH * float(ys.max() - ys.min() + 1)
-    differs = np.linalg.norm(rgb - colour, axis=2) >= BACKGROUND_DISTANCE
+    differs = np.all([np.linalg.norm(rgb - c, axis=2) >= BACKGROUND_DISTANCE for c in colours], axis=0)
     differs = cv2.morphologyEx(differs.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     candidates = differs & ~person
     n, labels, stats, _ = cv2.connectedComponentsWithStats(candidates.astype(np.uint8), connectivity=8)
