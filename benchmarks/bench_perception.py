@@ -21,8 +21,10 @@ ground truth, not inputs):
 cut-out and each scan in ../shared/fixtures/scans (rendered at azimuth 0, elevation 10 deg, 768²; the
 stylised Soldier left out) composited over white, a plain wall with a floor, and clutter
 (``benchmarks.stability.clutter_background``); per composite the segmentation's IoU with the alpha
-and its false positives / negatives (share of the true silhouette), untrimmed (``trim=False``) and
-trimmed (the default, ``trim_background``), and the seconds of each ``detect_person``.
+and its false positives / negatives (share of the true silhouette), the PSNR of the photo over white
+through the mask against the subject over white (the input view, on the person's box), untrimmed
+(``trim=False``) and trimmed (the default, ``trim_background``), and the seconds of each
+``detect_person``.
 
 Run:  .venv/bin/python benchmarks/bench_perception.py [--repeats 3]
 Writes benchmarks/results/perception.json.
@@ -152,18 +154,26 @@ def bench_composites() -> dict:
             rgb = rgba[..., :3] * a + background(kind, *rgba.shape[:2]) * (1.0 - a)
             photo = Photo(rgb=np.ascontiguousarray(rgb, np.float32), alpha=None, path=Path(f"{name}_{kind}.png"),
                           original_size=(rgba.shape[1], rgba.shape[0]))
+            over_white = rgba[..., :3] * a + (1.0 - a)
+            ys, xs = np.nonzero(truth)
+            box = (slice(max(0, ys.min() - 10), ys.max() + 11), slice(max(0, xs.min() - 10), xs.max() + 11))
             row = {}
             for label, trim in (("untrimmed", False), ("trimmed", True)):
                 t = time.perf_counter()
-                mask = detect_person(photo, trim=trim).mask > 0.5
+                soft = detect_person(photo, trim=trim).mask
+                seconds = time.perf_counter() - t
+                mask = soft > 0.5
+                view = rgb * soft[..., None] + (1.0 - soft[..., None])  # the input view: the photo over white
+                mse = float(np.mean((view[box] - over_white[box]) ** 2))
                 row[label] = {"iou": round(iou(mask, truth), 4),
                               "false_positive": round(float((mask & ~truth).sum() / truth.sum()), 4),
                               "false_negative": round(float((~mask & truth).sum() / truth.sum()), 4),
-                              "detect_s": round(time.perf_counter() - t, 3)}
+                              "input_view_psnr": round(10 * np.log10(1.0 / max(mse, 1e-10)), 2),
+                              "detect_s": round(seconds, 3)}
             rows[f"{name}_{kind}"] = row
             print(f"{name}_{kind}", row)
     means = {label: {k: round(float(np.mean([r[label][k] for r in rows.values()])), 4)
-                     for k in ("iou", "false_positive", "false_negative", "detect_s")}
+                     for k in ("iou", "false_positive", "false_negative", "input_view_psnr", "detect_s")}
              for label in ("untrimmed", "trimmed")}
     return {"per_photo": rows, "mean": means}
 

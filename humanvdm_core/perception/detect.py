@@ -99,6 +99,7 @@ TRIM_LIKELIHOOD = 2.0  # a pixel leaves the mask only where the background expla
 TRIM_MARGIN = 0.05  # GrabCut runs on the person's box widened by this share of their height ...
 TRIM_SIDE = 768  # ... scaled to at most this long side ...
 TRIM_ITERATIONS = 4  # ... for this many iterations
+FB_MIN = 0.1  # RGB distance between the person's and the background's colours nearby that tells a cut pixel's share
 WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
 
@@ -234,12 +235,16 @@ def trim_background(mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
 
     The mask is sure where it is at least :data:`SURE_PERSON` and :data:`TRIM_INNER` of the person's
     height inside its edge (the person), and far from it (more than :data:`TRIM_OUTER` outside: the
-    background). In between, OpenCV's GrabCut, on the person's box widened by :data:`TRIM_MARGIN` at most
-    :data:`TRIM_SIDE` px, learns a colour model of each from the photo and cuts along the photo's edges. The mask only shrinks: a
-    pixel leaves it where GrabCut says background and the background's model explains its colour at
-    least e^:data:`TRIM_LIKELIHOOD` times better than the person's (a light garment against a light
-    wall is kept). The result keeps the mask's soft edges: min(mask, the cut edge-refined on the photo at
-    GrabCut's scale). Deterministic: OpenCV's generator is seeded before each cut."""
+    background). In between, OpenCV's GrabCut (on the person's box widened by :data:`TRIM_MARGIN`, at
+    most :data:`TRIM_SIDE` px) learns a colour model of each from the photo and cuts along the photo's
+    edges. The mask only shrinks: a pixel is cut where GrabCut says background and the background's
+    model explains its colour at least e^:data:`TRIM_LIKELIHOOD` times better than the person's (a light
+    garment against a light wall is kept). A cut pixel keeps its share of the person: its colour ``c``
+    taken as ``a f + (1 - a) b`` with ``f`` the sure person's and ``b`` the background's mean colour
+    nearby (Gaussian weights, sigma :data:`TRIM_OUTER` of the height), so an edge pixel that mixes the
+    two keeps alpha ``a``, a gap of wall gets 0; where ``f`` and ``b`` are less than :data:`FB_MIN` apart
+    the share cannot be told and the cut stands. Elsewhere the mask is unchanged: the result is
+    ``min(mask, kept share)``. Deterministic: OpenCV's generator is seeded before each cut."""
     person = mask > 0.5
     ys, xs = np.nonzero(person)
     if ys.size == 0:
@@ -277,10 +282,23 @@ def trim_background(mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
         cut[cut] = clear
     if not cut.any():
         return mask
-    keep = (inside & ~cut).astype(np.float32)
-    radius = max(1, round(max(keep.shape) / 512))
-    keep = cv2.ximgproc.guidedFilter(np.ascontiguousarray(small_rgb, np.float32), keep, radius, 1e-3)
-    if s < 1:  # the full-size crop never goes through the filter: a 12,000-px photo stays in memory bounds
+    # a cut pixel's share of the person from the colours nearby: c = a f + (1 - a) b (docstring)
+    sigma = max(1.0, TRIM_OUTER * height * s)
+    colour = small_rgb.astype(np.float32)
+
+    def nearby(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        weight = cv2.GaussianBlur(sel.astype(np.float32), (0, 0), sigma)
+        total = cv2.GaussianBlur(colour * sel[..., None], (0, 0), sigma)
+        return total / np.maximum(weight, 1e-6)[..., None], weight
+
+    f, fw = nearby(labels == cv2.GC_FGD)
+    b, bw = nearby(~inside)
+    fb = f - b
+    span = (fb ** 2).sum(-1)
+    alpha = np.clip(((colour - b) * fb).sum(-1) / np.maximum(span, 1e-6), 0.0, 1.0)
+    told = (span >= FB_MIN ** 2) & (fw > 1e-4) & (bw > 1e-4)
+    keep = np.where(cut & told, alpha, np.where(cut, 0.0, 1.0)).astype(np.float32)
+    if s < 1:  # only the shares are resized to the full crop: a 12,000-px photo stays in memory bounds
         keep = cv2.resize(keep, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
     out = mask.copy()
     out[y0:y1, x0:x1] = np.minimum(crop_mask, np.clip(keep, 0.0, 1.0))
@@ -418,7 +436,7 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, t
     return det
 
 
-def _detect(photo: Photo, refuse_multiple: bool, trim: bool = True) -> Detection:
+def _detect(photo: Photo, refuse_multiple: bool, trim: bool) -> Detection:
     mp_pose, mp_selfie = _mediapipe()
     H, W = photo.height, photo.width
     warnings = list(photo.notes)
