@@ -72,9 +72,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
      not carried over, nor a wider print on the torso a few rows tall whose colour does not recur
      (:func:`without_print_runs`; stripes recur and stay); arms and legs take their medians per side
-     of the body (what one hand holds stays off the other arm); where the torso or the legs are both the nearest and the farthest surface,
-     the torso and the legs take one median per row, so the garment's own hem decides, not the
-     body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
+     of the body (what one hand holds stays off the other arm); where the torso or the legs are both
+     the nearest and the farthest surface, the torso and the legs take one median per row, so the
+     garment's own hem decides, not the body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
      below the shoulders' top) that shows clothing beside skin of the face's colour (:func:`face_colour`,
      :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median only, since a top covers
      more of the back than of the front; hands keep their own colour; a thick region outside the body

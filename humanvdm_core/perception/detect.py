@@ -300,9 +300,9 @@ def trim_background(mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
     keep = np.where(cut & told, alpha, np.where(cut, 0.0, 1.0)).astype(np.float32)
     if s < 1:  # only the shares are resized to the full crop: a 12,000-px photo stays in memory bounds
         keep = cv2.resize(keep, (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
-    out = mask.copy()
+    out = mask.astype(np.float32, copy=True)
     out[y0:y1, x0:x1] = np.minimum(crop_mask, np.clip(keep, 0.0, 1.0))
-    return out.astype(np.float32)
+    return out
 
 
 def _describe(names: list[str]) -> str:
