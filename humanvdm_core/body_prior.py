@@ -90,6 +90,9 @@ class InputView:
     scale: float
     warnings: list[str] = field(default_factory=list)
     world_keypoints: np.ndarray | None = None  # (17, 3) MediaPipe's 3D joints, metres, camera axes
+    # (S, S) float32: the mask the body is fitted to, the segmentation before its trim
+    # (:attr:`humanvdm_core.perception.Detection.untrimmed`); None: the alpha
+    fit_mask: np.ndarray | None = None
 
     @property
     def mask(self) -> np.ndarray:
@@ -150,19 +153,24 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
     det = detect_person(photo)
     x0, y0, x1, y1 = det.bbox
     scale = min(fill * size / max(y1 - y0, 1.0), MAX_WIDTH_FILL * size / max(x1 - x0, 1.0))
-    rgb, mask = photo.rgb, det.mask.astype(np.float32)
+    rgb = photo.rgb
     h, w = rgb.shape[:2]
     new_w, new_h = max(1, round(w * scale)), max(1, round(h * scale))
     interp = cv2.INTER_AREA if scale < 1.0 else cv2.INTER_LINEAR
     rgb = cv2.resize(rgb, (new_w, new_h), interpolation=interp)
-    mask = cv2.resize(mask, (new_w, new_h), interpolation=interp)
     sx, sy = new_w / w, new_h / h  # the scale actually applied per axis (rounding)
     cx, cy = 0.5 * (x0 + x1) * sx, 0.5 * (y0 + y1) * sy
     shift = np.array([[1.0, 0.0, size / 2.0 - cx], [0.0, 1.0, size / 2.0 - cy]])
     rgb = cv2.warpAffine(rgb, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    mask = cv2.warpAffine(mask, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=0.0)
-    mask = np.clip(mask, 0.0, 1.0)
+
+    def framed(m: np.ndarray) -> np.ndarray:
+        m = cv2.resize(m.astype(np.float32), (new_w, new_h), interpolation=interp)
+        m = cv2.warpAffine(m, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=0.0)
+        return np.clip(m, 0.0, 1.0)
+
+    mask = framed(det.mask)
+    fit_mask = None if det.untrimmed is None or det.untrimmed is det.mask else framed(det.untrimmed)
     bg = np.asarray(background, np.float32)
     rgba = np.empty((size, size, 4), np.float32)
     rgba[..., :3] = np.clip(rgb, 0.0, 1.0) * mask[..., None] + bg * (1.0 - mask[..., None])
@@ -170,7 +178,7 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
     keypoints = det.keypoints.astype(np.float64) * np.array([sx, sy]) + shift[:, 2]
     return InputView(rgba=rgba, keypoints=keypoints.astype(np.float32),
                      confidences=det.confidences.astype(np.float32), scale=float(scale),
-                     warnings=list(det.warnings), world_keypoints=det.world_keypoints)
+                     warnings=list(det.warnings), world_keypoints=det.world_keypoints, fit_mask=fit_mask)
 
 
 # ----------------------------------------------------------------------------- colouring helpers
@@ -368,7 +376,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
 
     model = load_body_model("anny")
     torch.manual_seed(seed)
-    obs = FrameObservation(0, view.keypoints, view.confidences, view.mask.copy(), list(view.warnings),
+    fit_mask = view.mask if view.fit_mask is None else view.fit_mask
+    obs = FrameObservation(0, view.keypoints, view.confidences, fit_mask.copy(), list(view.warnings),
                            world_keypoints=view.world_keypoints)
     fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),
                    logger=lg)

@@ -10,7 +10,10 @@ Contract of :func:`detect_person`:
   benchmark), then trimmed of the background it covers (:func:`trim_background`, unless
   ``trim=False``): the segmentation is soft and blurry, so it spans the narrow gaps between the arms
   and the body or between the legs, and a halo along its edge, where the photo shows the wall or the
-  floor. The selfie-segmentation model is used only to count people.
+  floor. ``Detection.untrimmed`` keeps the mask before the trim (the body fit's: its one-sided
+  silhouette term needs only the person's extent, and a gap opened between a hand and the hip would
+  push the fitted arm out of the image plane). The selfie-segmentation model is used only to count
+  people.
 - ``Detection.keypoints`` (17, 2) float32 pixel coordinates (x right, y down, origin at the
   top-left corner of the image, in ``photo.rgb``'s pixels) in :data:`COCO17_NAMES` order, and
   ``confidences`` (17,) float32 in [0, 1]: MediaPipe's visibility, set to 0 for a joint outside the
@@ -128,6 +131,9 @@ class Detection:
     # (17, 3) float32 metres, camera axes (x right, y down, z away), origin at the hip centre; None only
     # when MediaPipe gave no 3D landmarks
     world_keypoints: np.ndarray | None = None
+    # (H, W) float32: the mask before trim_background (the same as ``mask`` for an alpha cut-out or with
+    # trim=False); None when not given
+    untrimmed: np.ndarray | None = None
 
     def confident(self) -> np.ndarray:
         """(17,) bool: which keypoints are confident."""
@@ -428,8 +434,10 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, t
     det = _detect(_crop(photo, box), refuse_multiple, trim)
     mask = np.zeros((photo.height, photo.width), np.float32)
     mask[y0:y1, x0:x1] = det.mask
+    untrimmed = np.zeros_like(mask)
+    untrimmed[y0:y1, x0:x1] = det.untrimmed
     bx0, by0, bx1, by1 = det.bbox
-    det.mask, det.bbox = mask, (bx0 + x0, by0 + y0, bx1 + x0, by1 + y0)
+    det.mask, det.untrimmed, det.bbox = mask, untrimmed, (bx0 + x0, by0 + y0, bx1 + x0, by1 + y0)
     det.keypoints = (det.keypoints + np.array([x0, y0], np.float32)).astype(np.float32)
     det.warnings.append(f"the person fills little of the wide photo {photo.name}; found in the part "
                         f"x {x0}-{x1}, y {y0}-{y1} px (people elsewhere in it are not counted)")
@@ -502,16 +510,17 @@ def _detect(photo: Photo, refuse_multiple: bool, trim: bool) -> Detection:
 
     # Mask at full resolution, restricted to the chosen person when there are several.
     if alpha_ok:
-        mask = photo.alpha.astype(np.float32, copy=True)
+        mask = untrimmed = photo.alpha.astype(np.float32, copy=True)
         source = "alpha"
     else:
-        mask = _refine(person.segmentation, photo.rgb)
-        mask = trim_background(mask, photo.rgb) if trim else mask
+        untrimmed = _refine(person.segmentation, photo.rgb)
+        mask = trim_background(untrimmed, photo.rgb) if trim else untrimmed
         source = "segmentation"
     if len(big) > 1:
         keep = cv2.resize(_dilate(chosen_region, 0.01).astype(np.uint8), (W, H),
                           interpolation=cv2.INTER_NEAREST) > 0
         mask = np.where(keep, mask, 0.0).astype(np.float32)
+        untrimmed = np.where(keep, untrimmed, 0.0).astype(np.float32)
     # Keypoints in photo pixels; joints outside the frame get confidence 0.
     lm = person.landmarks[list(BLAZEPOSE_TO_COCO17)]
     keypoints = (lm[:, :2] / np.array([ww / W, wh / H], np.float32)).astype(np.float32)
@@ -521,6 +530,7 @@ def _detect(photo: Photo, refuse_multiple: bool, trim: bool) -> Detection:
         held = held_objects(photo.rgb, mask, keypoints, confidences)
         if held.any():
             mask = np.where(held, 1.0, mask).astype(np.float32)
+            untrimmed = np.where(held, 1.0, untrimmed).astype(np.float32)
             warnings.append(f"{photo.name}: something the person holds lies outside their outline "
                             f"({held.sum() / max(1.0, float((mask > 0.5).sum())):.0%} of it); kept as part of "
                             "them, its depth guessed")
@@ -552,4 +562,4 @@ def _detect(photo: Photo, refuse_multiple: bool, trim: bool) -> Detection:
         warnings.append(f"not clearly visible in {photo.name}: {_describe(low)}")
     return Detection(mask=mask, keypoints=keypoints, confidences=confidences, bbox=bbox, mask_source=source,
                      num_people=num_people, missing=missing, outside=outside, warnings=warnings,
-                     world_keypoints=world)
+                     world_keypoints=world, untrimmed=untrimmed)
