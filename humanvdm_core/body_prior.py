@@ -37,9 +37,14 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    visible colour, print-free, hair on the back of the head. Geometry ``body`` (the ablation): the
    naked body coloured per vertex (:func:`colour_body`: seen vertices from the photo, hidden ones
    mirrored from the front, hair on the back of the head).
-6. Frames: the proxy rendered at every orbit camera over ``background`` (RGBA, A = coverage); the
+6. Centring: the proxy (and the fitted joints) are scaled about the input camera's centre so that the
+   middle of the proxy's bounding box lies on the orbit's axis (:func:`centring_transform`): the
+   input view does not change, and the orbit turns about the person's middle -- as SV3D's orbits and
+   the scans' renders do -- whatever size the fit gave the body (a seated person's knees no longer
+   swing round an axis through their back).
+7. Frames: the proxy rendered at every orbit camera over ``background`` (RGBA, A = coverage); the
    azimuth-0 frame is then REPLACED by the preprocessed input view itself, so the input view is exact.
-7. Warnings (``BodyProxy.warnings``, each naming the photo): what the stand-in had to guess -- legs or
+8. Warnings (``BodyProxy.warnings``, each naming the photo): what the stand-in had to guess -- legs or
    hands hidden, a seated pose (the seat is not in the mask), much of the silhouette outside the body,
    the facing -- plus the detector's own (e.g. a second person).
 
@@ -53,7 +58,7 @@ print, no face); the limbs' depth is a single-view estimate.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -71,6 +76,7 @@ SUBJECT_HEIGHT = 1.7  # the framing assumes a subject this tall (world units) at
 DEFAULT_FILL = 0.85
 MAX_WIDTH_FILL = 0.95  # a wide pose (arms out) may span at most this fraction of the frame width
 DEPTH_TOLERANCE = 0.02  # world units: a vertex this close behind the rendered surface is visible
+MAX_CENTRING_SCALE = 1.5  # centring_transform scales the proxy by at most this (or its inverse)
 HEAD_JOINTS = ("head", "eye.L", "eye.R")
 BOUNDARY_SMOOTHING = 3  # neighbour-average passes on the visible/hidden weight
 BACK_SMOOTHING = 2  # neighbour-average passes on the hidden vertices' colours
@@ -121,7 +127,7 @@ class BodyProxy:
         return render_views(self.mesh, self.cameras if cameras is None else cameras, self.background).rgba
 
     def orbit_frames(self) -> np.ndarray:
-        """The orbit's frames with the azimuth-0 frame replaced by the input view (contract step 5)."""
+        """The orbit's frames with the azimuth-0 frame replaced by the input view (contract step 7)."""
         frames = self.render()
         frames[self.front_index] = self.input_view.rgba
         return frames
@@ -253,7 +259,7 @@ def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.
 
 def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image: np.ndarray, mask: np.ndarray,
                 head_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-vertex colours (V, 3) of a body seen in one view (contract step 4) and the visibility (V,) bool.
+    """Per-vertex colours (V, 3) of a body seen in one view (contract step 5) and the visibility (V,) bool.
 
     ``camera`` holds one camera; ``image`` (H, W, 3) and ``mask`` (H, W) are that view's photo and
     person mask; ``head_weight`` (V,) in [0, 1] marks the head (None: no hair handling)."""
@@ -343,11 +349,28 @@ def shoulder_turn_deg(coco17: np.ndarray, w2c: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(abs(line[2]), abs(line[0]))))
 
 
+def centring_transform(points: np.ndarray, camera_c2w: np.ndarray) -> np.ndarray:
+    """4x4 scaling about the camera centre that moves the middle of ``points``' (N, 3) bounding box onto
+    the vertical axis through the orbit centre (the world origin), along the camera's horizontal
+    direction. Every point stays on its ray, so the camera's view of them does not change."""
+    centre = np.asarray(camera_c2w, np.float64)[:3, 3]
+    towards = centre * np.array([1.0, 0.0, 1.0])
+    towards /= max(float(np.linalg.norm(towards)), 1e-9)
+    pts = np.asarray(points, np.float64)
+    middle = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    scale = float(centre @ towards) / max(float((centre - middle) @ towards), 1e-9)
+    scale = float(np.clip(scale, 1.0 / MAX_CENTRING_SCALE, MAX_CENTRING_SCALE))
+    m = np.eye(4)
+    m[:3, :3] *= scale
+    m[:3, 3] = (1.0 - scale) * centre
+    return m
+
+
 def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
                      background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
                      fill: float = DEFAULT_FILL, seed: int = 0, geometry: str = "clothed",
                      logger: logging.Logger | None = None) -> BodyProxy:
-    """Steps 1-4 of the contract: the input view, the orbit, the fitted body and the coloured proxy."""
+    """Steps 1-6 of the contract: the input view, the orbit, the fitted body and the coloured, centred proxy."""
     import torch
 
     from humanvdm_core.body import load_body_model
@@ -416,6 +439,11 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     else:
         colours, _ = colour_body(vertices, faces, front_cam, view.rgba[..., :3], view.mask, head_weight)
         mesh = TexturedMesh(vertices.astype(np.float32), faces, vertex_colors=colours)
+    to_centre = centring_transform(mesh.vertices, front_cam.c2w[0])  # step 6 of the contract
+    mesh = mesh.transformed(to_centre)
+    if clothed is not None:
+        clothed = replace(clothed, mesh=mesh)
+    coco17 = coco17 @ to_centre[:3, :3].T + to_centre[:3, 3]
     return BodyProxy(input_view=view, mesh=mesh, cameras=cameras, front_index=front,
                      background=tuple(float(c) for c in background),
                      reprojection_px=float(np.nanmean(fit.reprojection_px)),
