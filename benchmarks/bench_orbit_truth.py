@@ -5,11 +5,13 @@ subject2 standing) and ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_ha
 ``make_subject`` (512² texture) and normalised like a scan. The photo is the subject rendered at
 azimuth 0, elevation 10°, 576² over white; ``body_prior.build_body_proxy`` (what ``diffuse``'s
 body-prior backend renders its orbit from) is rendered at azimuth 0 / 90 / 180 / 270 and scored against
-the subject rendered there: PSNR and silhouette IoU after re-framing (``bench_pipeline.reframe``), per
+the subject rendered there: PSNR and silhouette IoU after re-framing (``bench_pipeline.reframe``; with
+``--no-reframe`` as rendered, only resized: where the subject sits in the frame counts too), per
 view; ``unseen`` = mean PSNR of 90/180/270, ``side_iou`` = mean IoU of 90/270. Also the run's warnings.
 
-Run:  .venv/bin/python -m benchmarks.bench_orbit_truth [--subjects subject0 gown]
-Writes results/orbit_truth.json and results/orbit_truth.png (rows: truth, proxy; per subject).
+Run:  .venv/bin/python -m benchmarks.bench_orbit_truth [--subjects subject0 gown] [--no-reframe]
+Writes results/orbit_truth.json and results/orbit_truth.png (rows: truth, proxy; per subject), or
+only results/orbit_truth_raw.json with ``--no-reframe``.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.bench_pipeline import reframe, scores  # noqa: E402
+from benchmarks.bench_pipeline import reframe, resized, scores  # noqa: E402
 from benchmarks.common import RESULTS, save_result  # noqa: E402
 
 AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
@@ -59,7 +61,11 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--subjects", nargs="*", default=None)
+    ap.add_argument("--no-reframe", action="store_true",
+                    help="score the renders as they are (resized only); results in orbit_truth_raw.*")
     args = ap.parse_args()
+    prep = resized if args.no_reframe else reframe
+    label = "orbit_truth_raw" if args.no_reframe else "orbit_truth"
     torch.set_num_threads(1)
     table = specs()
     names = args.subjects or list(table)
@@ -74,7 +80,7 @@ def main() -> None:
             write_png(photo, truth[0])
             proxy = build_body_proxy(photo)
             seen = proxy.render(cams)
-            per = [scores(reframe(seen[i, ..., :3], seen[i, ..., 3], 512), reframe(truth[i, ..., :3], truth[i, ..., 3], 512))
+            per = [scores(prep(seen[i, ..., :3], seen[i, ..., 3], 512), prep(truth[i, ..., :3], truth[i, ..., 3], 512))
                    for i in range(len(AZIMUTHS))]
             psnr, iou = [round(p["psnr"], 2) for p in per], [round(p["iou"], 3) for p in per]
             result[name] = {"pose": spec.pose, "dress": getattr(spec, "dress", None), "psnr": psnr, "iou": iou,
@@ -83,9 +89,11 @@ def main() -> None:
             print(name, {k: v for k, v in result[name].items() if k != "warnings"}, flush=True)
             sheet = np.concatenate([np.concatenate(list(truth[..., :3]), 1), np.concatenate(list(seen[..., :3]), 1)], 0)
             rows.append(cv2.resize(sheet, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA))
-    write_png(RESULTS / "orbit_truth.png", np.concatenate(rows, 0))
+    if not args.no_reframe:  # the sheet shows the renders as they are either way
+        write_png(RESULTS / "orbit_truth.png", np.concatenate(rows, 0))
     cmd = "python -m benchmarks.bench_orbit_truth" + (f" --subjects {' '.join(names)}" if args.subjects else "")
-    print(save_result("orbit_truth", result, command=cmd))
+    cmd += " --no-reframe" if args.no_reframe else ""
+    print(save_result(label, result, command=cmd))
 
 
 if __name__ == "__main__":

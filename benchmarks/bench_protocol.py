@@ -71,7 +71,7 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.bench_pipeline import ELEVATION, VIEWS, WHITE, reframe, scores, view_cameras  # noqa: E402
+from benchmarks.bench_pipeline import ELEVATION, VIEWS, WHITE, reframe, resized, scores, view_cameras  # noqa: E402
 from benchmarks.common import RESULTS, save_result  # noqa: E402
 
 SCANS = REPO.parent / "shared" / "fixtures" / "scans"
@@ -208,13 +208,7 @@ def run_scan(folder: Path, work: Path, args) -> dict:
         g_rgb, g_a = render_gaussians(load_gaussians(run_dir / "splat-optimize" / "gaussians"), cams, WHITE)
 
     def prep(rgb, alpha):
-        if args.no_reframe:
-            rgb = cv2.resize(np.ascontiguousarray(rgb, np.float32), (args.eval_size, args.eval_size),
-                             interpolation=cv2.INTER_AREA)
-            alpha = cv2.resize(np.ascontiguousarray(alpha, np.float32), (args.eval_size, args.eval_size),
-                               interpolation=cv2.INTER_AREA)
-            return np.clip(rgb, 0, 1), np.clip(alpha, 0, 1)
-        return reframe(rgb, alpha, args.eval_size)
+        return (resized if args.no_reframe else reframe)(rgb, alpha, args.eval_size)
 
     orbit_views, gauss_views, rows = {}, {}, []
     for i, (view, az) in enumerate(VIEWS.items()):
