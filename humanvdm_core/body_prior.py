@@ -352,10 +352,13 @@ def shoulder_turn_deg(coco17: np.ndarray, w2c: np.ndarray) -> float:
 def centring_transform(points: np.ndarray, camera_c2w: np.ndarray) -> np.ndarray:
     """4x4 scaling about the camera centre that moves the middle of ``points``' (N, 3) bounding box onto
     the vertical axis through the orbit centre (the world origin), along the camera's horizontal
-    direction. Every point stays on its ray, so the camera's view of them does not change."""
+    direction. Every point stays on its ray, so the camera's view of them does not change. A camera
+    straight above the origin has no horizontal direction: the identity."""
     centre = np.asarray(camera_c2w, np.float64)[:3, 3]
     towards = centre * np.array([1.0, 0.0, 1.0])
-    towards /= max(float(np.linalg.norm(towards)), 1e-9)
+    if np.linalg.norm(towards) < 1e-6 * max(float(np.linalg.norm(centre)), 1e-9):
+        return np.eye(4)
+    towards /= np.linalg.norm(towards)
     pts = np.asarray(points, np.float64)
     middle = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
     scale = float(centre @ towards) / max(float((centre - middle) @ towards), 1e-9)

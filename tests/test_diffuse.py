@@ -208,11 +208,13 @@ def test_centring_moves_the_middle_onto_the_axis_and_keeps_the_view():
     m = centring_transform(points, cam.c2w[0])
     moved = points @ m[:3, :3].T + m[:3, 3]
     middle = 0.5 * (moved.min(axis=0) + moved.max(axis=0))
-    assert abs(middle[2]) < 1e-9  # the camera is on +Z: the axis is x = z = 0 seen along z
+    assert abs(middle[2]) < 1e-9  # the camera is on +Z, so the middle moves to z = 0
     before, _ = project_points(points, cam.w2c[0], cam.K[0])
     after, _ = project_points(moved, cam.w2c[0], cam.K[0])
     np.testing.assert_allclose(after, before, atol=1e-6)
     assert 1.0 < m[0, 0] < 1.1  # in front of the axis: moved away from the camera, so a little larger
+    above = orbit_cameras(1, SIZE, 33.8, 90.0, 3.3, azimuths_deg=np.array([0.0]))
+    np.testing.assert_array_equal(centring_transform(points, above.c2w[0]), np.eye(4))
 
 
 def test_the_orbit_turns_about_a_seated_persons_middle(tmp_path):
