@@ -22,7 +22,8 @@ Backends:
   body fitted to the photo (2D keypoints, MediaPipe's 3D landmarks, the mask from inside), a clothed
   proxy built around it that fills the person's whole silhouette with depth (clothing, hair, held
   objects; :mod:`humanvdm_core.clothed_proxy`), coloured from the photo (the unseen side from the
-  same body part's visible colour, print-free; hair on the back of the head), rendered along the orbit
+  same body part's visible colour, print-free; hair on the back of the head), centred so the orbit
+  turns about its middle, rendered along the orbit
   (:mod:`humanvdm_core.body_prior`, whose docstring is the contract and lists its limits). A photo
   taken from behind is built facing away. What it had to guess (hidden legs or hands, a seated pose,
   clothing far from the body, the facing) is said in warnings. It keeps the pipeline runnable on a CPU.
