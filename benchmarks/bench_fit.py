@@ -125,8 +125,7 @@ def bench_photo(path: Path, iterations: int) -> dict:
     radius = framing_radius(1.7, 33.8, 0.85)
     c2w = look_at(orbit_position(0.0, 0.0, radius))
     cams = Cameras(intrinsics(33.8, W, H)[None], c2w[None], W, H, np.zeros(1), np.zeros(1), np.array([radius]))
-    fit_mask = det.mask if det.untrimmed is None else det.untrimmed
-    obs = [FrameObservation(0, det.keypoints, det.confidences, fit_mask, list(det.warnings),
+    obs = [FrameObservation(0, det.keypoints, det.confidences, det.fit_mask, list(det.warnings),
                             world_keypoints=det.world_keypoints)]
     model = load_body_model("anny", topology="anny")
     t = time.perf_counter()

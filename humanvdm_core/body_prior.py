@@ -96,8 +96,8 @@ class InputView:
     scale: float
     warnings: list[str] = field(default_factory=list)
     world_keypoints: np.ndarray | None = None  # (17, 3) MediaPipe's 3D joints, metres, camera axes
-    # (S, S) float32: the mask the body is fitted to, the segmentation before its trim
-    # (:attr:`humanvdm_core.perception.Detection.untrimmed`); None: the alpha
+    # (S, S) float32: the mask the body is fitted to (:attr:`humanvdm_core.perception.Detection.fit_mask`,
+    # the segmentation before its trim); None: the same as ``mask``
     fit_mask: np.ndarray | None = None
 
     @property
@@ -176,7 +176,7 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
         return np.clip(m, 0.0, 1.0)
 
     mask = framed(det.mask)
-    fit_mask = None if det.untrimmed is None or det.untrimmed is det.mask else framed(det.untrimmed)
+    fit_mask = None if det.fit_mask is det.mask else framed(det.fit_mask)
     bg = np.asarray(background, np.float32)
     rgba = np.empty((size, size, 4), np.float32)
     rgba[..., :3] = np.clip(rgb, 0.0, 1.0) * mask[..., None] + bg * (1.0 - mask[..., None])

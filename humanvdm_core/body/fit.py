@@ -238,9 +238,8 @@ def observe_frames(
                 failed[i] = str(exc)
             continue
         world = None if det.world_keypoints is None else det.world_keypoints.astype(np.float32)
-        mask = det.mask if det.untrimmed is None else det.untrimmed  # the person's extent, gaps not cut
         observations.append(FrameObservation(i, det.keypoints.astype(np.float32),
-                                             det.confidences.astype(np.float32), mask.astype(np.float32),
+                                             det.confidences.astype(np.float32), det.fit_mask.astype(np.float32),
                                              list(det.warnings), world))
     return observations, failed
 

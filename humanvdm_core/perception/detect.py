@@ -10,10 +10,10 @@ Contract of :func:`detect_person`:
   benchmark), then trimmed of the background it covers (:func:`trim_background`, unless
   ``trim=False``): the segmentation is soft and blurry, so it spans the narrow gaps between the arms
   and the body or between the legs, and a halo along its edge, where the photo shows the wall or the
-  floor. ``Detection.untrimmed`` keeps the mask before the trim (the body fit's: its one-sided
-  silhouette term needs only the person's extent, and a gap opened between a hand and the hip would
-  push the fitted arm out of the image plane). The selfie-segmentation model is used only to count
-  people.
+  floor. ``Detection.untrimmed`` keeps the mask before the trim and ``Detection.fit_mask`` gives it
+  to a body fit (its one-sided silhouette term needs only the person's extent, and a gap opened
+  between a hand and the hip would push the fitted arm out of the image plane). The
+  selfie-segmentation model is used only to count people.
 - ``Detection.keypoints`` (17, 2) float32 pixel coordinates (x right, y down, origin at the
   top-left corner of the image, in ``photo.rgb``'s pixels) in :data:`COCO17_NAMES` order, and
   ``confidences`` (17,) float32 in [0, 1]: MediaPipe's visibility, set to 0 for a joint outside the
@@ -134,6 +134,11 @@ class Detection:
     # (H, W) float32: the mask before trim_background (the same as ``mask`` for an alpha cut-out or with
     # trim=False); None when not given
     untrimmed: np.ndarray | None = None
+
+    @property
+    def fit_mask(self) -> np.ndarray:
+        """(H, W) float32: the mask a body is fitted to, the person's whole extent (``untrimmed`` when given)."""
+        return self.mask if self.untrimmed is None else self.untrimmed
 
     def confident(self) -> np.ndarray:
         """(17,) bool: which keypoints are confident."""
