@@ -258,7 +258,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     world, c = _reflected(np.asarray(corners, np.float64), camera)
     far = render_views(TexturedMesh(world, flat, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
     w2c = camera.w2c[0]
-    z = np.asarray(vertices, np.float64) @ w2c[:3, 2] + w2c[2, 3]
+    z = np.asarray(vertices, np.float64) @ w2c[2, :3] + w2c[2, 3]
     lo, hi = float(z.min()) - 0.01, float(z.max()) + 0.01
     back = np.where(far.depth[0] > 0, 2.0 * c - far.depth[0], 0.0)
     # a pixel is the body's where both passes saw it at a depth the body has (a stray rasterised depth

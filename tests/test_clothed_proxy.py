@@ -238,6 +238,29 @@ def test_body_maps_show_no_third_part_between_two():
         assert seen and seen <= {PARTS.index("torso"), PARTS.index("legs")}, (key, seen)
 
 
+@pytest.mark.parametrize("lean", [0.5, -0.5])
+def test_body_maps_keep_a_leg_reaching_back_or_forward_under_a_camera_looking_down(lean):
+    """A strip whose lower end lies 0.5 m behind (or in front of) its upper end, seen from 10 deg above: the
+    body covers every pixel the strip is drawn on (the body's depth range was once taken along the wrong
+    camera axis, so a pitched camera dropped the far, low end -- shins and feet behind the hips -- and the
+    proxy hung them plumb under the body)."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import body_maps
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, 4), np.linspace(-0.8, 0.8, 2))
+    vertices = np.stack([xs.ravel(), ys.ravel(), np.where(ys < 0, lean, 0.0).ravel()], axis=1).astype(np.float32)
+    faces = np.array([[0, 4, 1], [1, 4, 5], [1, 5, 2], [2, 5, 6], [2, 6, 3], [3, 6, 7]], np.int32)
+    faces = np.concatenate([faces, faces[:, ::-1]])
+    cam = orbit_cameras(1, 96, 33.8, 10.0, 3.0, azimuths_deg=np.array([0.0]))
+    maps = body_maps(vertices, faces, np.full(8, PARTS.index("legs")), cam)
+    drawn = render_views(TexturedMesh(vertices, faces), cam, (0.0, 0.0, 0.0)).depth[0] > 0
+    assert (drawn & maps["covered"]).sum() > 0.95 * drawn.sum()
+    low = drawn & (np.arange(96)[:, None] > np.nonzero(drawn.any(axis=1))[0].max() - 10)  # the strip's lower end
+    assert (low & maps["covered"]).sum() > 0.9 * low.sum()
+
+
 def _cylinder_body():
     import trimesh
 
