@@ -241,9 +241,8 @@ def test_body_maps_show_no_third_part_between_two():
 @pytest.mark.parametrize("lean", [0.5, -0.5])
 def test_body_maps_keep_a_leg_reaching_back_or_forward_under_a_camera_looking_down(lean):
     """A strip whose lower end lies 0.5 m behind (or in front of) its upper end, seen from 10 deg above: the
-    body covers every pixel the strip is drawn on (the body's depth range was once taken along the wrong
-    camera axis, so a pitched camera dropped the far, low end -- shins and feet behind the hips -- and the
-    proxy hung them plumb under the body)."""
+    body covers every pixel the strip is drawn on, its far, low end included (shins and feet behind the
+    hips under a camera that looks down are body, not stray depths)."""
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import body_maps
     from humanvdm_core.render import render_views
