@@ -57,7 +57,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    not pinched between them or at the hands. ``T = 0`` on the footprint's border, so front and back
    meet there.
 7. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
-   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`), one
+   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`; where
+   the photo shows long hair, the back sheet behind the head and the neck moves back so the hair
+   hangs plumb from the back of the head, :func:`hang_hair`), one
    vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
@@ -114,6 +116,9 @@ LOOSE_RANGE = (0.15, 0.45)  # ... how much to inflate: none below the first shar
 BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
+HAIR_DEPTH = 0.05  # metres of hair behind the skull where the photo shows long hair (a hair curtain) ...
+HAIR_CURTAIN_DEPTH = 0.03  # ... and at least this far behind the body where the curtain hangs ...
+HAIR_FADE = 0.1  # ... fading out over this fraction of the grid below the curtain's lowest row
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
@@ -658,6 +663,49 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
     return person & (yy <= lowest[None, :])
 
 
+def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, rgb: np.ndarray,
+              mask: np.ndarray, camera: Cameras, hair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Long hair as geometry on the unseen side (contract step 7). Where the photo shows a hair curtain
+    (:func:`hair_curtain` on the grid of ``camera``, and only where the torso's clothes differ from the
+    ``hair`` colour by more than :data:`HAIR_DISTANCE`): the back of the head in the curtain's columns
+    stands :data:`HAIR_DEPTH` further back (hair over the skull); below the head the back sheet
+    (``mid + half``) reaches at least that far back, plumb (the same horizontal distance in front of the
+    camera, :func:`horizontal_reach`; beyond the head's columns the nearest head column's), and at least
+    :data:`HAIR_CURTAIN_DEPTH` behind the body, so the hair fills the hollow of the neck instead of
+    clinging to it; below the curtain's lowest row that pull fades out over :data:`HAIR_FADE` of the
+    grid (the hair falls onto the back, no ledge). ``inner``: the pixels that may move (not the
+    footprint's border). Returns the new ``(mid, half)``; the front sheet does not move."""
+    g = mid.shape[0]
+    known = maps["front_part"] >= 0
+    if not known.any():
+        return mid, half
+    photo = cv2.resize(rgb.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA)
+    person = cv2.resize(mask.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA)
+    front_part = nearest_fill(maps["front_part"].astype(np.float32), known).astype(np.int64)
+    torso = (person > 0.5) & (front_part == PARTS.index("torso"))
+    head = inner & (front_part == PARTS.index("head"))
+    if torso.sum() < 16 or head.sum() < 8 or np.linalg.norm(np.median(photo[torso], axis=0) - hair) <= HAIR_DISTANCE:
+        return mid, half
+    curtain = hair_curtain(photo, person, front_part, hair) & inner & ~head
+    if not curtain.any():
+        return mid, half
+    reach = horizontal_reach(camera)
+    back = mid + half
+    cols = np.nonzero(head.any(axis=0))[0]
+    skull = np.where(head, back * reach, -np.inf).max(axis=0)[cols]  # the head's back, horizontal distance
+    plumb = (np.interp(np.arange(g), cols, skull)[None, :] + HAIR_DEPTH) / reach
+    rows = np.arange(g)[:, None]
+    last = np.where(curtain.any(axis=0), g - 1 - np.argmax(curtain[::-1], axis=0), -1)[None, :]
+    below = (rows > last) & (last >= 0) & inner & ~head
+    weight = np.where(curtain, 1.0, below * np.clip(1.0 - (rows - last) / (HAIR_FADE * g), 0.0, 1.0))
+    target = np.maximum(back + HAIR_CURTAIN_DEPTH, plumb)
+    new_back = np.maximum(back, weight * target + (1.0 - weight) * back)
+    skull_hair = head & curtain.any(axis=0)[None, :] & (maps["back_part"] == PARTS.index("head"))
+    new_back = np.where(skull_hair, back + HAIR_DEPTH, new_back)
+    front = mid - half
+    return 0.5 * (front + new_back), 0.5 * (new_back - front)
+
+
 # ----------------------------------------------------------------------------- the proxy
 
 def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
@@ -854,6 +902,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
     mid, half = remove_spikes(mid, half, domain, border)
+    if head_colour is not None:
+        mid, half = hang_hair(mid, half, domain & ~border, maps, rgb, mask, cam_g, np.asarray(head_colour, np.float32))
 
     # vertices: front sheet on every domain pixel, back sheet on interior pixels (border shared in position)
     rows, cols = np.nonzero(domain)

@@ -306,6 +306,44 @@ def test_proxy_fills_a_wider_mask_and_is_closed():
     assert np.all(proxy.skin_joints[top, 0] == 1) and np.allclose(proxy.skin_weights.sum(axis=1), 1.0)
 
 
+def test_long_hair_hangs_behind_the_neck_and_short_of_it_nothing_moves():
+    """A cylinder "person" from 10 deg above whose photo shows hair over the head and down to the
+    shoulders, on a red shirt: from the side, the back reaches further back in the hair's rows (hair
+    behind the skull and hanging behind the neck, :func:`hang_hair`) than with no hair colour given,
+    and the rows well below the hair do not move."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import HAIR_CURTAIN_DEPTH, build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    import trimesh
+
+    torch.set_num_threads(1)
+    v, f, _, names = _cylinder_body()
+    v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=0.08)  # small faces: one part each
+    w = np.stack([v[:, 1] < 0.6, v[:, 1] >= 0.6], axis=1).astype(np.float64)
+    size = 256
+    cams = orbit_cameras(2, size, 33.8, 10.0, 3.2, azimuths_deg=np.array([0.0, 90.0]))
+    front = cams.subset([0])
+    seen = render_views(TexturedMesh(v, f), front, (0.0, 0.0, 0.0))
+    mask = (seen.rgba[0, ..., 3] > 0.5).astype(np.float32)
+    rows = np.nonzero(mask.any(axis=1))[0]
+    top, height = rows.min(), np.ptp(rows)
+    hair = np.array([0.25, 0.15, 0.05], np.float32)
+    rgb = np.empty((size, size, 3), np.float32)
+    rgb[:] = (0.8, 0.1, 0.1)
+    rgb[: top + int(0.2 * height)] = hair  # the head (the top eighth) and hair down to the shoulders
+    with_hair = build_clothed_proxy(v, f, w, names, front, rgb, mask, head_colour=hair, grid=size)
+    without = build_clothed_proxy(v, f, w, names, front, rgb, mask, head_colour=None, grid=size)
+    side = [render_views(p.mesh, cams.subset([1]), (1.0, 1.0, 1.0)).rgba[0, ..., 3] > 0.5 for p in (with_hair, without)]
+    width = [s.sum(axis=1) for s in side]
+    fx = float(front.K[0, 0, 0])
+    hair_rows = slice(top + int(0.14 * height), top + int(0.18 * height))  # below the head, in the curtain
+    assert (width[0][hair_rows] - width[1][hair_rows]).mean() > 0.8 * HAIR_CURTAIN_DEPTH * fx / 3.2
+    low_rows = slice(top + int(0.5 * height), top + int(0.9 * height))
+    assert np.abs(width[0][low_rows] - width[1][low_rows]).max() <= 1
+
+
 def test_horizontal_reach_puts_a_vertical_line_at_one_value():
     """For a camera looking down 20 deg, the points of a vertical line in the world have one ``z * reach``
     (their camera depth z times the pixel's reach), while their camera depths differ by centimetres."""
