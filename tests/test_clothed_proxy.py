@@ -311,12 +311,12 @@ def test_long_hair_hangs_behind_the_neck_and_short_of_it_nothing_moves():
     shoulders, on a red shirt: from the side, the back reaches further back in the hair's rows (hair
     behind the skull and hanging behind the neck, :func:`hang_hair`) than with no hair colour given,
     and the rows well below the hair do not move."""
+    import trimesh
+
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import HAIR_CURTAIN_DEPTH, build_clothed_proxy
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import TexturedMesh
-
-    import trimesh
 
     torch.set_num_threads(1)
     v, f, _, names = _cylinder_body()
