@@ -611,12 +611,9 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     for region in regions:
         per_row = row_medians(photo, region, band)
         out[region] = np.broadcast_to(per_row[:, None, :], photo.shape)[region]
-    torso = person & (front_part == PARTS.index("torso"))
-    if head_colour is not None and torso.sum() >= 16:
-        # only where hair can be told from the clothes under it
-        if np.linalg.norm(np.median(photo[torso], axis=0) - head_colour) > HAIR_DISTANCE:
-            hair = hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
-            out[hair & (back_part != PARTS.index("hands"))] = head_colour
+    if head_colour is not None:
+        hair = distinct_hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
+        out[hair & (back_part != PARTS.index("hands"))] = head_colour
     return out
 
 
@@ -666,8 +663,7 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
 def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, rgb: np.ndarray,
               mask: np.ndarray, camera: Cameras, hair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Long hair as geometry on the unseen side (contract step 7). Where the photo shows a hair curtain
-    (:func:`hair_curtain` on the grid of ``camera``, and only where the torso's clothes differ from the
-    ``hair`` colour by more than :data:`HAIR_DISTANCE`): the back of the head in the curtain's columns
+    (:func:`distinct_hair_curtain` on the grid of ``camera``): the back of the head in the curtain's columns
     stands :data:`HAIR_DEPTH` further back (hair over the skull); below the head the back sheet
     (``mid + half``) reaches at least that far back, plumb (the same horizontal distance in front of the
     camera, :func:`horizontal_reach`; beyond the head's columns the nearest head column's), and at least
@@ -682,11 +678,10 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     photo = cv2.resize(rgb.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA)
     person = cv2.resize(mask.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA)
     front_part = nearest_fill(maps["front_part"].astype(np.float32), known).astype(np.int64)
-    torso = (person > 0.5) & (front_part == PARTS.index("torso"))
     head = inner & (front_part == PARTS.index("head"))
-    if torso.sum() < 16 or head.sum() < 8 or np.linalg.norm(np.median(photo[torso], axis=0) - hair) <= HAIR_DISTANCE:
+    if head.sum() < 8:
         return mid, half
-    curtain = hair_curtain(photo, person, front_part, hair) & inner & ~head
+    curtain = distinct_hair_curtain(photo, person, front_part, hair) & inner & ~head
     if not curtain.any():
         return mid, half
     reach = horizontal_reach(camera)
@@ -704,6 +699,16 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     new_back = np.where(skull_hair, back + HAIR_DEPTH, new_back)
     front = mid - half
     return 0.5 * (front + new_back), 0.5 * (new_back - front)
+
+
+def distinct_hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:
+    """:func:`hair_curtain` where hair can be told from the clothes under it: the torso's median colour
+    lies more than :data:`HAIR_DISTANCE` from ``hair`` (else, or with fewer than 16 torso pixels, none).
+    The one rule for both the unseen side's hair colour and its volume (:func:`hang_hair`)."""
+    torso = (mask > 0.5) & (front_part == PARTS.index("torso"))
+    if torso.sum() < 16 or np.linalg.norm(np.median(photo[torso], axis=0) - hair) <= HAIR_DISTANCE:
+        return np.zeros(mask.shape, bool)
+    return hair_curtain(photo, mask, front_part, hair)
 
 
 # ----------------------------------------------------------------------------- the proxy
