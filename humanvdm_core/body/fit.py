@@ -28,7 +28,10 @@ Contract:
     each frame's camera against the same bone of the detector's ``world_keypoints``: mean of
     (1 - cos) weighted by the lower confidence of the bone's joints. Only directions count (the
     detector's 3D scale and origin do not matter). This is what tells a single photo's limb depth:
-    a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body;
+    a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body.
+    An arm the 2D keypoints show held out to the side is first turned into the body's frontal plane
+    (:func:`frontal_arms`, ``FitOptions.frontal_arms``): the detector tilts such forearms 20-30 deg
+    towards the camera;
   * silhouette, one-sided by default: projected vertices (a fixed subsample) must fall inside the
     mask (the mask's outside distance transform sampled bilinearly at them; ``silhouette_weight``).
     The other side, the mask's contour covered by the body (each contour point's distance to the
@@ -120,6 +123,15 @@ SINGLE_VIEW_PRIOR_3D = 0.1  # default FitOptions.single_view_pose_prior_weight_3
 UPRIGHT_WEIGHT = 20.0  # default FitOptions.upright_weight
 TORSO_FREE_DEG = 1.5  # a torso within this angle of the arc from upright to the detector's torso costs nothing
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
+# An arm held out to the side (see frontal_arms): in the image, the upper arm at least ARM_OUT_DEG from
+# hanging straight down, the forearm within ARM_STRAIGHT_DEG of the upper arm's line, the upper arm at
+# least ARM_SEEN_LENGTH of the torso's length (not pointing at the camera), its three joints at least
+# ARM_CONFIDENCE sure.
+ARM_OUT_DEG = 35.0
+ARM_STRAIGHT_DEG = 35.0
+ARM_SEEN_LENGTH = 0.4
+ARM_CONFIDENCE = 0.5
+ARMS = ((5, 7, 9), (6, 8, 10))  # COCO-17 shoulder, elbow, wrist: left, right
 
 
 @dataclass
@@ -152,6 +164,8 @@ class FitOptions:
     upright_weight: float = UPRIGHT_WEIGHT
     # the key frame shows the person's back (a photo from behind): start facing away from its camera
     facing_away: bool = False
+    # the detector's 3D arms held out to the side are turned into the body's frontal plane (frontal_arms)
+    frontal_arms: bool = True
 
     def check(self) -> None:
         if self.iterations < 1 or self.refine_iterations < 0:
@@ -257,6 +271,49 @@ def project(points: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> tuple[t
     return px, cam[..., 2]
 
 
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-9)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
+                 up: np.ndarray) -> np.ndarray:
+    """The detector's 3D landmarks ``world`` (17, 3, camera axes) with every arm held out to the side
+    turned into the body's frontal plane (the plane through the 3D shoulder line and ``up``, the
+    world's up in the camera's axes); bone lengths are kept and nothing else moves.
+
+    An arm is held out to the side when its 2D ``keypoints`` (17, 2 pixels, ``confidences``) show the
+    upper arm at least :data:`ARM_OUT_DEG` from hanging straight down, the forearm within
+    :data:`ARM_STRAIGHT_DEG` of the upper arm's line, the upper arm at least :data:`ARM_SEEN_LENGTH`
+    of the torso's length and its three joints at least :data:`ARM_CONFIDENCE` sure. MediaPipe tilts
+    such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg elevation: true
+    -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a T-pose, an
+    A-pose, a wave). Arms that hang, bend (hands on the hips, holding a cup) or point at the camera
+    keep their depth."""
+    out = np.asarray(world, np.float64).copy()
+    normal = np.cross(out[5] - out[6], np.asarray(up, np.float64))
+    if np.linalg.norm(normal) < 1e-6:
+        return out.astype(np.float32)
+    normal /= np.linalg.norm(normal)
+    torso = np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0))
+    for shoulder, elbow, wrist in ARMS:
+        upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
+        held_out = (_angle_deg(upper_2d, np.array([0.0, 1.0])) >= ARM_OUT_DEG
+                    and _angle_deg(upper_2d, fore_2d) <= ARM_STRAIGHT_DEG
+                    and np.linalg.norm(upper_2d) >= ARM_SEEN_LENGTH * torso
+                    and min(confidences[[shoulder, elbow, wrist]]) >= ARM_CONFIDENCE)
+        if not held_out:
+            continue
+        bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
+        flat = [b - (b @ normal) * normal for b in bones]
+        if min(np.linalg.norm(f) for f in flat) < 1e-6:
+            continue
+        upper, fore = (f / np.linalg.norm(f) * np.linalg.norm(b) for f, b in zip(flat, bones, strict=True))
+        out[elbow] = out[shoulder] + upper
+        out[wrist] = out[elbow] + fore
+    return out.astype(np.float32)
+
+
 def _swap_pairs(groups: Sequence[bool], *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     """Copies of per-keypoint ``arrays`` (17, ...) with the left/right pairs of the flagged groups exchanged."""
     out = tuple(a.copy() for a in arrays)
@@ -330,6 +387,11 @@ class _Problem:
                                    for o in observations]).astype(np.float32)
         self.raw_world_conf = self.raw_conf * np.array([o.world_keypoints is not None for o in observations],
                                                        np.float32)[:, None]
+        if options.frontal_arms:
+            ups = cams.w2c[:, :3, :3] @ np.array([0.0, 1.0, 0.0])  # the world's up in each camera's axes
+            for f, o in enumerate(observations):
+                if o.world_keypoints is not None:
+                    self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)
         self.bone_end = torch.as_tensor(end, dtype=dt)
