@@ -246,6 +246,71 @@ def test_arms_held_out_to_the_side_stay_in_the_frontal_plane(photo):
             assert min(err) > 12.0, err
 
 
+def _knee_bends_deg(c: np.ndarray) -> list[float]:
+    return [_angle_deg(c[k] - c[h], c[a] - c[k]) for h, k, a in ((11, 13, 15), (12, 14, 16))]
+
+
+@pytest.mark.slow
+def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
+    """RenderPeople Eric (a real scan, T-pose, trousers) as the photo: MediaPipe reads his straight legs
+    as knees bent about 35 deg with the feet behind the hips (his 2D shins are a fifth shorter than
+    his thighs), and the fit followed (here bends of 24 / 15 deg, the ankles 6 cm behind the hips; in
+    the protocol's 768 px photo 28 / 20 deg and 9 cm). The stance term
+    of a photo of a person standing still keeps the knees within a few degrees of straight and the
+    feet below the hips (here 11 / 10 deg and 0.4 cm)."""
+    from pathlib import Path
+
+    pytest.importorskip("anny", reason="the 'anny' package is not installed")
+    pytest.importorskip("mediapipe", reason="MediaPipe is not installed")
+    scan = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "scans" / "renderpeople_rp_eric_rigged_001"
+    if not scan.is_dir():
+        pytest.skip(f"fixture scan {scan} not present")
+    torch.set_num_threads(1)
+    from humanvdm_core.body.fit import observe_frames
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    cam = orbit_cameras(1, 576, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
+    rgba = render_views(normalize_scan(load_scan(scan)), cam, (1.0, 1.0, 1.0)).rgba
+    obs, failed = observe_frames(rgba, [0])
+    assert obs and not failed, failed
+    for options, still in (({}, True), ({"stance_weight": 0.0}, False)):
+        c = _fit(obs[0], cam, **options).output.coco17[0].numpy().astype(np.float64)
+        bends = _knee_bends_deg(c)
+        feet = float(c[[15, 16], 2].mean() - c[[11, 12], 2].mean())  # + = in front of the hips
+        if still:
+            assert max(bends) < 12.0 and abs(feet) < 0.06, (bends, feet)
+        else:  # without it the knees bend and the feet trail (so this test can tell)
+            assert max(bends) > 20.0 and feet < -0.04, (bends, feet)
+
+
+def test_standing_still_tells_a_stance_from_a_stride_a_seat_and_hidden_legs():
+    """standing_still on hand-made keypoints (a person 400 px tall)."""
+    from humanvdm_core.body.fit import standing_still
+
+    kp = np.zeros((17, 2))
+    kp[[5, 6, 11, 12]] = [[230, 100], [170, 100], [220, 200], [180, 200]]
+    kp[[13, 14, 15, 16]] = [[222, 300], [178, 300], [224, 390], [176, 390]]
+    conf = np.ones(17)
+    mask = np.zeros((480, 400))
+    mask[10:410, 150:250] = 1.0
+    world = np.zeros((17, 3))
+    world[[11, 12, 13, 14, 15, 16]] = [[0.1, 0, 0], [-0.1, 0, 0], [0.1, 0.45, -0.05], [-0.1, 0.45, -0.05],
+                                       [0.1, 0.9, 0.02], [-0.1, 0.9, 0.02]]
+    assert standing_still(kp, conf, world, mask)
+    stride = kp.copy()
+    stride[16, 1] = 370  # one ankle 5 % of the height higher: a step
+    seated = kp.copy()
+    seated[[13, 14]] = [[222, 240], [178, 240]]  # thighs foreshortened: pointing at the camera
+    hidden = conf.copy()
+    hidden[[15, 16]] = 0.2  # ankles under a gown
+    bent = world.copy()
+    bent[[13, 14], 2] = -0.4  # the detector's knees bent about 80 deg
+    for k, c, w in ((stride, conf, world), (seated, conf, world), (kp, hidden, world), (kp, conf, bent)):
+        assert not standing_still(k, c, w, mask)
+
+
 def test_frontal_arms_moves_only_arms_held_out_to_the_side():
     """frontal_arms on hand-made landmarks (a level camera: the frontal plane is the image plane)."""
     from humanvdm_core.body.fit import frontal_arms

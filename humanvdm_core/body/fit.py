@@ -47,7 +47,13 @@ Contract:
     more than :data:`TORSO_FREE_DEG` off the arc from the world's +Y to the detector's own torso line
     costs the excess angle squared. The detector's torso is right within 2-3 deg on synthetic
     subjects, upright or bowing, but the other terms pull a single photo's fit 4-8 deg back (a seated
-    person reclines); many views see the lean themselves.
+    person reclines); many views see the lean themselves. A single photo of a person standing still
+    (:func:`standing_still`) also gets the stance term (``stance_weight``, :meth:`_Problem.stance_term`):
+    each knee bent beyond :data:`STANCE_KNEE_FREE_DEG` and the ankles' centre more than
+    :data:`STANCE_FEET_FREE` in front of or behind the hips' (along the camera's horizontal view)
+    cost, squared. MediaPipe bends the knees of people who stand straight (its 3D knees 17-20 deg on
+    every standing render; on real people in trousers its 2D shins come out a fifth short, so the
+    2D keypoints alone bend them too) and the fit put their feet 0.1-0.2 m behind the hips.
 
 - Left/right confusion: a keypoint detector often swaps the person's left and right on back and
   side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
@@ -132,6 +138,21 @@ ARM_STRAIGHT_DEG = 35.0
 ARM_SEEN_LENGTH = 0.4
 ARM_CONFIDENCE = 0.5
 ARMS = ((5, 7, 9), (6, 8, 10))  # COCO-17 shoulder, elbow, wrist: left, right
+# A person standing still (see standing_still): in the photo both legs' hips, knees and ankles at least
+# STANCE_CONFIDENCE sure, each thigh within STANCE_THIGH_DEG and shin within STANCE_SHIN_DEG of straight
+# down and the thigh at least STANCE_THIGH_LENGTH of the torso's length (not foreshortened: a seated or
+# crouching person's thighs point at the camera), the two ankles' rows within STANCE_ROWS of the
+# person's height (no stride), and the detector's 3D knees bent at most STANCE_BEND_DEG.
+STANCE_CONFIDENCE = 0.5
+STANCE_THIGH_DEG = 35.0
+STANCE_SHIN_DEG = 55.0
+STANCE_THIGH_LENGTH = 0.6
+STANCE_ROWS = 0.015
+STANCE_BEND_DEG = 50.0
+STANCE_WEIGHT = 10.0  # default FitOptions.stance_weight
+STANCE_KNEE_FREE_DEG = 10.0  # a knee bent less than this costs nothing ..
+STANCE_FEET_FREE = 0.05  # .. nor ankles this close (world units) to below the hips along the view
+LEGS = ((11, 13, 15), (12, 14, 16))  # COCO-17 hip, knee, ankle: left, right
 
 
 @dataclass
@@ -166,13 +187,16 @@ class FitOptions:
     facing_away: bool = False
     # the detector's 3D arms held out to the side are turned into the body's frontal plane (frontal_arms)
     frontal_arms: bool = True
+    # a single photo of a person standing still (standing_still): knees straight, feet below the hips
+    stance_weight: float = STANCE_WEIGHT
 
     def check(self) -> None:
         if self.iterations < 1 or self.refine_iterations < 0:
             raise ConfigError("iterations must be >= 1 and refine_iterations >= 0")
         for name in ("keypoint_weight", "silhouette_weight", "silhouette_cover_weight", "bone_direction_weight",
                      "pose_prior_weight", "single_view_pose_prior_weight", "single_view_pose_prior_weight_3d",
-                     "shape_prior_weight", "scale_prior_weight", "refine_prior_weight", "upright_weight"):
+                     "shape_prior_weight", "scale_prior_weight", "refine_prior_weight", "upright_weight",
+                     "stance_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.keypoint_weight == 0 and self.silhouette_weight == 0 and self.silhouette_cover_weight == 0:
@@ -312,6 +336,30 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
         out[elbow] = out[shoulder] + upper
         out[wrist] = out[elbow] + fore
     return out.astype(np.float32)
+
+
+def standing_still(keypoints: np.ndarray, confidences: np.ndarray, world: np.ndarray | None,
+                   mask: np.ndarray) -> bool:
+    """Whether a photo shows a person standing still on both legs: 2D ``keypoints`` (17, 2 pixels) and
+    ``confidences``, the detector's 3D landmarks ``world`` (17, 3, or None: no 3D check) and the person's
+    ``mask``, with the thresholds of :data:`STANCE_CONFIDENCE` .. :data:`STANCE_BEND_DEG`. A stride
+    (ankles at different rows), a seated or crouching person (short or bent thighs), hidden legs (a
+    gown) or a leg raised sideways are not."""
+    legs = [j for leg in LEGS for j in leg]
+    if min(confidences[legs]) < STANCE_CONFIDENCE:
+        return False
+    down = np.array([0.0, 1.0])
+    torso = np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0))
+    for hip, knee, ankle in LEGS:
+        thigh, shin = keypoints[knee] - keypoints[hip], keypoints[ankle] - keypoints[knee]
+        if (_angle_deg(thigh, down) > STANCE_THIGH_DEG or _angle_deg(shin, down) > STANCE_SHIN_DEG
+                or np.linalg.norm(thigh) < STANCE_THIGH_LENGTH * torso):
+            return False
+        if world is not None and _angle_deg(world[knee] - world[hip], world[ankle] - world[knee]) > STANCE_BEND_DEG:
+            return False
+    rows = np.flatnonzero((mask > 0.5).any(axis=1))
+    height = float(rows[-1] - rows[0] + 1) if len(rows) else 0.0
+    return abs(float(keypoints[15, 1] - keypoints[16, 1])) <= STANCE_ROWS * height
 
 
 def _swap_pairs(groups: Sequence[bool], *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -508,6 +556,20 @@ class _Problem:
         outside = 0.5 * (angle(d, up) + angle(d[None], seen) - angle(up[None], seen))
         return torch.relu(outside - np.radians(TORSO_FREE_DEG)).pow(2).mean()
 
+    def stance_term(self, coco17: torch.Tensor, forward: torch.Tensor) -> torch.Tensor:
+        """A person standing still: each knee's bend (thigh vs shin of ``coco17``, world axes) beyond
+        :data:`STANCE_KNEE_FREE_DEG`, in radians, squared; plus the ankles' centre's offset from the
+        hips' along ``forward`` (the key camera's horizontal view direction) beyond
+        :data:`STANCE_FEET_FREE`, in units of it, squared."""
+        loss = coco17.sum() * 0.0
+        for hip, knee, ankle in LEGS:
+            thigh, shin = coco17[knee] - coco17[hip], coco17[ankle] - coco17[knee]
+            cos = (thigh * shin).sum() / (thigh.norm() * shin.norm()).clamp(min=1e-9)
+            bend = torch.acos(cos.clamp(-1 + 1e-6, 1 - 1e-6))
+            loss = loss + torch.relu(bend - np.radians(STANCE_KNEE_FREE_DEG)).pow(2)
+        offset = ((coco17[[15, 16]].mean(0) - coco17[[11, 12]].mean(0)) * forward).sum()
+        return loss + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_FREE).pow(2)
+
     def silhouette_terms(self, vertices: torch.Tensor, cover: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """The one-sided term (vertices inside the mask) and, with ``cover``, the contour-coverage term
         (else 0)."""
@@ -674,6 +736,14 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
             history.append(float(loss.detach()))
         lg.debug("phase 1b: bone-direction loss %.4f", history[-1])
 
+    # a single photo of a person standing still: knees straight, feet below the hips (the key camera's view)
+    stance_forward = None
+    if n_views == 1 and options.stance_weight > 0 and standing_still(
+            problem.raw_kp[key], problem.raw_conf[key], observations[key].world_keypoints, observations[key].mask):
+        forward = problem.cams.c2w[key][:3, 2] * np.array([1.0, 0.0, 1.0])
+        stance_forward = torch.as_tensor(forward / max(float(np.linalg.norm(forward)), 1e-9), dtype=model.dtype)
+        lg.debug("standing still: stance term on")
+
     # phase 2: pose and shape too
     n2 = options.iterations
     groups = [[orient, transl, log_scale], [joint_rot], [shape_var]]
@@ -694,6 +764,8 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
         loss = loss + pose_prior * joint_rot.pow(2).sum(-1).mean()
         if upright > 0:
             loss = loss + upright * problem.torso_term(out.coco17[0])
+        if stance_forward is not None:
+            loss = loss + options.stance_weight * problem.stance_term(out.coco17[0], stance_forward)
         loss = loss + options.shape_prior_weight * (params.shape - default_shape).pow(2).sum() / 0.25
         loss = loss + scale_prior()
         loss.backward()
