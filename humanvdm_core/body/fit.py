@@ -153,6 +153,7 @@ STANCE_WEIGHT = 10.0  # default FitOptions.stance_weight
 STANCE_KNEE_FREE_DEG = 10.0  # a knee bent less than this costs nothing ..
 STANCE_FEET_FREE = 0.05  # .. nor ankles this close (world units) to below the hips along the view
 LEGS = ((11, 13, 15), (12, 14, 16))  # COCO-17 hip, knee, ankle: left, right
+IMAGE_DOWN = np.array([0.0, 1.0])  # straight down in the image (pixel y grows downwards)
 
 
 @dataclass
@@ -300,6 +301,11 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
+def _unit_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Angles (radians) between unit vectors along the last axis (broadcast), kept off 0 and pi."""
+    return torch.acos((a * b).sum(-1).clamp(-1 + 1e-6, 1 - 1e-6))
+
+
 def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
                  up: np.ndarray) -> np.ndarray:
     """The detector's 3D landmarks ``world`` (17, 3, camera axes) with every arm held out to the side
@@ -322,7 +328,7 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     torso = np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0))
     for shoulder, elbow, wrist in ARMS:
         upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
-        held_out = (_angle_deg(upper_2d, np.array([0.0, 1.0])) >= ARM_OUT_DEG
+        held_out = (_angle_deg(upper_2d, IMAGE_DOWN) >= ARM_OUT_DEG
                     and _angle_deg(upper_2d, fore_2d) <= ARM_STRAIGHT_DEG
                     and np.linalg.norm(upper_2d) >= ARM_SEEN_LENGTH * torso
                     and min(confidences[[shoulder, elbow, wrist]]) >= ARM_CONFIDENCE)
@@ -348,11 +354,10 @@ def standing_still(keypoints: np.ndarray, confidences: np.ndarray, world: np.nda
     legs = [j for leg in LEGS for j in leg]
     if min(confidences[legs]) < STANCE_CONFIDENCE:
         return False
-    down = np.array([0.0, 1.0])
     torso = np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0))
     for hip, knee, ankle in LEGS:
         thigh, shin = keypoints[knee] - keypoints[hip], keypoints[ankle] - keypoints[knee]
-        if (_angle_deg(thigh, down) > STANCE_THIGH_DEG or _angle_deg(shin, down) > STANCE_SHIN_DEG
+        if (_angle_deg(thigh, IMAGE_DOWN) > STANCE_THIGH_DEG or _angle_deg(shin, IMAGE_DOWN) > STANCE_SHIN_DEG
                 or np.linalg.norm(thigh) < STANCE_THIGH_LENGTH * torso):
             return False
         if world is not None and _angle_deg(world[knee] - world[hip], world[ankle] - world[knee]) > STANCE_BEND_DEG:
@@ -549,11 +554,7 @@ class _Problem:
         seen = self.bone_dir[:, SPINE_BONE] @ self.w2c[:, :3, :3]  # (F, 3) the detector's torso, world axes
         conf = self.bone_conf[:, SPINE_BONE]
         seen = torch.where(conf[:, None] > 0, seen, up)
-
-        def angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-            return torch.acos((a * b).sum(-1).clamp(-1 + 1e-6, 1 - 1e-6))
-
-        outside = 0.5 * (angle(d, up) + angle(d[None], seen) - angle(up[None], seen))
+        outside = 0.5 * (_unit_angle(d, up) + _unit_angle(d[None], seen) - _unit_angle(up[None], seen))
         return torch.relu(outside - np.radians(TORSO_FREE_DEG)).pow(2).mean()
 
     def stance_term(self, coco17: torch.Tensor, forward: torch.Tensor) -> torch.Tensor:
@@ -561,14 +562,13 @@ class _Problem:
         :data:`STANCE_KNEE_FREE_DEG`, in radians, squared; plus the ankles' centre's offset from the
         hips' along ``forward`` (the key camera's horizontal view direction) beyond
         :data:`STANCE_FEET_FREE`, in units of it, squared."""
-        loss = coco17.sum() * 0.0
-        for hip, knee, ankle in LEGS:
-            thigh, shin = coco17[knee] - coco17[hip], coco17[ankle] - coco17[knee]
-            cos = (thigh * shin).sum() / (thigh.norm() * shin.norm()).clamp(min=1e-9)
-            bend = torch.acos(cos.clamp(-1 + 1e-6, 1 - 1e-6))
-            loss = loss + torch.relu(bend - np.radians(STANCE_KNEE_FREE_DEG)).pow(2)
-        offset = ((coco17[[15, 16]].mean(0) - coco17[[11, 12]].mean(0)) * forward).sum()
-        return loss + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_FREE).pow(2)
+        hips, knees, ankles = (coco17[list(j)] for j in zip(*LEGS, strict=True))  # (2, 3) each: left, right
+        thighs, shins = knees - hips, ankles - knees
+        bends = _unit_angle(thighs / thighs.norm(dim=-1, keepdim=True).clamp(min=1e-9),
+                            shins / shins.norm(dim=-1, keepdim=True).clamp(min=1e-9))
+        offset = ((ankles.mean(0) - hips.mean(0)) * forward).sum()
+        return (torch.relu(bends - np.radians(STANCE_KNEE_FREE_DEG)).pow(2).sum()
+                + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_FREE).pow(2))
 
     def silhouette_terms(self, vertices: torch.Tensor, cover: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """The one-sided term (vertices inside the mask) and, with ``cover``, the contour-coverage term
