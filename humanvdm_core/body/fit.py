@@ -44,10 +44,13 @@ Contract:
     deviation of the shape from the backend's default; the scale from its initial estimate (only
     matters for one camera); the torso between upright and the detector's torso
     (``upright_weight`` / views², :meth:`_Problem.torso_term`): the hip centre -> shoulder centre line
-    more than :data:`TORSO_FREE_DEG` off the arc from the world's +Y to the detector's own torso line
-    costs the excess angle squared. The detector's torso is right within 2-3 deg on synthetic
-    subjects, upright or bowing, but the other terms pull a single photo's fit 4-8 deg back (a seated
-    person reclines); many views see the lean themselves. A single photo of a person standing still
+    more than :data:`TORSO_FREE_DEG` off the arc from the world's +Y to the detector's torso line
+    costs the excess angle squared. The other terms pull a single photo's fit 4-8 deg back (a seated
+    person reclines); many views see the lean themselves. The detector's torso is taken as it is from
+    :data:`TORSO_TRUSTED_DEG` off upright on (a bow), and as upright within :data:`TORSO_NOISE_DEG`
+    (between the two the lean it counts grows from 0 to the whole): MediaPipe leans the torso of
+    people who stand upright 3-13 deg forward (synthetic renders at 10 deg elevation), and a real
+    photo's unknown camera height tilts it either way. A single photo of a person standing still
     (:func:`standing_still`) also gets the stance term (``stance_weight``, :meth:`_Problem.stance_term`):
     each knee bent beyond :data:`STANCE_KNEE_FREE_DEG` and the ankles' centre more than
     :data:`STANCE_FEET_FREE` in front of or behind the hips' (along the camera's horizontal view)
@@ -128,6 +131,8 @@ BONE_DIRECTION_WEIGHT = 2.0  # default FitOptions.bone_direction_weight
 SINGLE_VIEW_PRIOR_3D = 0.1  # default FitOptions.single_view_pose_prior_weight_3d
 UPRIGHT_WEIGHT = 20.0  # default FitOptions.upright_weight
 TORSO_FREE_DEG = 1.5  # a torso within this angle of the arc from upright to the detector's torso costs nothing
+TORSO_NOISE_DEG = 10.0  # the detector's torso this close to upright counts as upright ...
+TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (between: a linear ramp)
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
 # An arm held out to the side (see frontal_arms): in the image, the upper arm at least ARM_OUT_DEG from
 # hanging straight down, the forearm within ARM_STRAIGHT_DEG of the upper arm's line, the upper arm at
@@ -304,6 +309,18 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def _unit_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Angles (radians) between unit vectors along the last axis (broadcast), kept off 0 and pi."""
     return torch.acos((a * b).sum(-1).clamp(-1 + 1e-6, 1 - 1e-6))
+
+
+def trusted_lean(seen: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """The detector's torso directions ``seen`` (F, 3, unit) turned towards ``up`` (3,) in their own vertical
+    plane: an angle to ``up`` within :data:`TORSO_NOISE_DEG` becomes 0, one of :data:`TORSO_TRUSTED_DEG`
+    or more stays, and one between grows linearly from 0 to the whole."""
+    angle = _unit_angle(seen, up[None])  # (F,)
+    noise, trusted = np.radians(TORSO_NOISE_DEG), np.radians(TORSO_TRUSTED_DEG)
+    kept = torch.where(angle >= trusted, angle, (angle - noise).clamp(min=0.0) * trusted / (trusted - noise))
+    side = seen - (seen @ up)[:, None] * up[None]
+    side = side / side.norm(dim=-1, keepdim=True).clamp(min=1e-9)
+    return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
 
 
 def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
@@ -544,16 +561,18 @@ class _Problem:
 
     def torso_term(self, coco17: torch.Tensor) -> torch.Tensor:
         """How far the model's torso (hip centre -> shoulder centre of ``coco17``, world axes, +Y up) lies
-        outside the arc from upright to the detector's torso (its 3D landmarks turned into the world):
-        ``(angle to +Y + angle to the detector's - the arc's length) / 2``, 0 on the arc, beyond
-        :data:`TORSO_FREE_DEG`, squared (radians); mean over the frames (a frame without 3D landmarks
-        has the arc +Y alone). A bow the detector sees costs nothing; a lean it does not see does."""
+        outside the arc from upright to the detector's torso (its 3D landmarks turned into the world,
+        then :func:`trusted_lean`): ``(angle to +Y + angle to the detector's - the arc's length) / 2``, 0 on
+        the arc, beyond :data:`TORSO_FREE_DEG`, squared (radians); mean over the frames (a frame without
+        3D landmarks has the arc +Y alone). A bow the detector sees costs nothing; a lean it does not
+        see does."""
         d = self.bone_end[SPINE_BONE] @ coco17 - self.bone_start[SPINE_BONE] @ coco17  # (3,)
         d = d / d.norm().clamp(min=1e-9)
         up = torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype)
-        seen = self.bone_dir[:, SPINE_BONE] @ self.w2c[:, :3, :3]  # (F, 3) the detector's torso, world axes
+        # (F, 3) the detector's torso, each frame's camera axes turned into the world's
+        seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
         conf = self.bone_conf[:, SPINE_BONE]
-        seen = torch.where(conf[:, None] > 0, seen, up)
+        seen = torch.where(conf[:, None] > 0, trusted_lean(seen, up), up)
         outside = 0.5 * (_unit_angle(d, up) + _unit_angle(d[None], seen) - _unit_angle(up[None], seen))
         return torch.relu(outside - np.radians(TORSO_FREE_DEG)).pow(2).mean()
 
