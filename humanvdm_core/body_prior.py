@@ -29,8 +29,9 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
    azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
    directions, the mask one-sided so clothing never stretches the body, the torso leaning no further
-   than the landmarks show (a lean of theirs under 10 deg counts as upright), an arm held out to the side kept in the body's plane, a person standing
-   still kept on straight legs with the feet below the hips).
+   than the landmarks show (a lean of theirs under 10 deg counts as upright), an arm held out to the
+   side kept in the body's plane, a person standing still kept on straight legs with the feet below
+   the hips).
 5. Geometry ``clothed`` (default): the clothed proxy (:func:`humanvdm_core.clothed_proxy.build_clothed_proxy`)
    -- a closed surface whose input view is the person's whole mask, the body's depth carried out to
    the silhouette and inflated where the body does not reach (loose clothing, hair, hats, held
