@@ -301,6 +301,11 @@ def project(points: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> tuple[t
     return px, cam[..., 2]
 
 
+def _torso_length(points: np.ndarray) -> float:
+    """Distance from the hip centre to the shoulder centre of COCO-17 ``points`` (17, 2 or 3)."""
+    return float(np.linalg.norm(points[[5, 6]].mean(0) - points[[11, 12]].mean(0)))
+
+
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-9)
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
@@ -342,7 +347,7 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     if np.linalg.norm(normal) < 1e-6:
         return out.astype(np.float32)
     normal /= np.linalg.norm(normal)
-    torso = np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0))
+    torso = _torso_length(keypoints)
     for shoulder, elbow, wrist in ARMS:
         upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
         held_out = (_angle_deg(upper_2d, IMAGE_DOWN) >= ARM_OUT_DEG
@@ -371,7 +376,7 @@ def standing_still(keypoints: np.ndarray, confidences: np.ndarray, world: np.nda
     legs = [j for leg in LEGS for j in leg]
     if min(confidences[legs]) < STANCE_CONFIDENCE:
         return False
-    torso = np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0))
+    torso = _torso_length(keypoints)
     for hip, knee, ankle in LEGS:
         thigh, shin = keypoints[knee] - keypoints[hip], keypoints[ankle] - keypoints[knee]
         if (_angle_deg(thigh, IMAGE_DOWN) > STANCE_THIGH_DEG or _angle_deg(shin, IMAGE_DOWN) > STANCE_SHIN_DEG
@@ -486,6 +491,11 @@ class _Problem:
             self.raw_world, self.raw_world_conf, self.swapped_3d, strict=True)], strict=True)
         self.bone_dir = torch.as_tensor(np.stack(dirs), dtype=dt)  # (F, B, 3) unit
         self.bone_conf = torch.as_tensor(np.stack(confs), dtype=dt)  # (F, B)
+        # (F, 3) the detector's torso for torso_term: each frame's camera axes turned into the world's,
+        # then trusted_lean; +Y for a frame without 3D landmarks
+        up = torch.tensor([0.0, 1.0, 0.0], dtype=dt)
+        seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
+        self.torso_seen = torch.where(self.bone_conf[:, SPINE_BONE, None] > 0, trusted_lean(seen, up), up)
 
     def _observed_bones(self, world: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit bone directions (B, 3) of 3D landmarks (17, 3) and their weights (B,): the confidence
@@ -569,10 +579,7 @@ class _Problem:
         d = self.bone_end[SPINE_BONE] @ coco17 - self.bone_start[SPINE_BONE] @ coco17  # (3,)
         d = d / d.norm().clamp(min=1e-9)
         up = torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype)
-        # (F, 3) the detector's torso, each frame's camera axes turned into the world's
-        seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
-        conf = self.bone_conf[:, SPINE_BONE]
-        seen = torch.where(conf[:, None] > 0, trusted_lean(seen, up), up)
+        seen = self.torso_seen
         outside = 0.5 * (_unit_angle(d, up) + _unit_angle(d[None], seen) - _unit_angle(up[None], seen))
         return torch.relu(outside - np.radians(TORSO_FREE_DEG)).pow(2).mean()
 
@@ -633,9 +640,8 @@ def _initial_params(problem: _Problem, key: int) -> BodyParams:
     depth = float(w2c[2, 3])  # camera z of the world origin (the orbit centre)
     if conf[list(TORSO)].min() > 0:
         centre_px = kp[list(TORSO)].mean(0)
-        top, bottom = kp[[5, 6]].mean(0), kp[[11, 12]].mean(0)
-        torso_px = float(np.linalg.norm(top - bottom))
-        model_torso = float(np.linalg.norm(coco[[5, 6]].mean(0) - coco[[11, 12]].mean(0)))
+        torso_px = _torso_length(kp)
+        model_torso = _torso_length(coco)
         scale = torso_px * depth / float(K[1, 1]) / max(model_torso, 1e-6)
         scale = float(np.clip(scale, 0.2, 5.0))
     else:  # silhouette only: the mask's bounding box centre and height
