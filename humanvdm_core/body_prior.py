@@ -14,7 +14,9 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    no usable person). The photo is scaled so the person's bounding box spans ``fill`` of the frame
    height (or 0.95 of its width if that is smaller), the box centre is moved to the frame centre,
    and the result is composited over ``background`` through the person mask: a ``size``² RGBA image
-   (A = the mask) plus the keypoints in its pixels. ``fill`` is the orbit's framing: a subject
+   (A = the mask) plus the keypoints in its pixels, and what lies past an edge of the photo that cuts
+   the person off (at the knees, at the thighs) marked unseen (:func:`beyond_the_frame`): the fit's
+   silhouette says nothing there. ``fill`` is the orbit's framing: a subject
    :data:`SUBJECT_HEIGHT` tall at the origin spans ``fill`` of the frame at the orbit radius
    (:func:`humanvdm_core.scans.framing_radius`).
 2. Cameras: ``orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(...))`` (the
@@ -77,6 +79,7 @@ FOV_DEG = 33.8  # SV3D_p's vertical field of view
 SUBJECT_HEIGHT = 1.7  # the framing assumes a subject this tall (world units) at the origin
 DEFAULT_FILL = 0.85
 MAX_WIDTH_FILL = 0.95  # a wide pose (arms out) may span at most this fraction of the frame width
+EDGE_TOUCH_PX = 2  # the person's mask touches an edge of the photo with at least this many pixels (beyond_the_frame)
 DEPTH_TOLERANCE = 0.02  # world units: a vertex this close behind the rendered surface is visible
 MAX_CENTRING_SCALE = 1.5  # centring_transform scales the proxy by at most this (or its inverse)
 HEAD_JOINTS = ("head", "eye.L", "eye.R")
@@ -101,6 +104,8 @@ class InputView:
     # (S, S) float32: the mask the body is fitted to (:attr:`humanvdm_core.perception.Detection.fit_mask`,
     # the segmentation before its trim); None: the same as ``mask``
     fit_mask: np.ndarray | None = None
+    # (S, S) bool: pixels past an edge of the photo that cuts the person off (see beyond_the_frame); None: none
+    unseen: np.ndarray | None = None
 
     @property
     def mask(self) -> np.ndarray:
@@ -152,6 +157,28 @@ def resolve_photo(path: str | Path) -> Path:
     return candidates[0]
 
 
+def beyond_the_frame(mask: np.ndarray, keypoints: np.ndarray, box: tuple[float, float, float, float],
+                     size: int) -> np.ndarray:
+    """(size, size) bool: the pixels past each edge of the photo that cuts the person off -- their
+    ``mask`` (the photo's pixels) touches it with at least :data:`EDGE_TOUCH_PX` pixels and one of the
+    detector's ``keypoints`` (17, 2, the photo's pixels; a joint outside the photo has the detector's
+    guess) lies past it -- where the photo, placed at ``box`` (x0, y0, x1, y1, pixels of the ``size``²
+    frame), ends: the person goes on there unseen. A photo cropped tight around the whole person
+    touches its edges with every joint inside: nothing is unseen."""
+    person = mask > 0.5
+    h, w = person.shape
+    x, y = keypoints[:, 0], keypoints[:, 1]
+    x0, y0, x1, y1 = box
+    centres = np.arange(size) + 0.5
+    cols, rows = centres[None, :], centres[:, None]
+    out = np.zeros((size, size), bool)
+    for edge, joint_past, past in ((person[:, 0], x < 0, cols < x0), (person[0], y < 0, rows < y0),
+                                   (person[:, -1], x >= w, cols > x1), (person[-1], y >= h, rows > y1)):
+        if edge.sum() >= EDGE_TOUCH_PX and joint_past.any():
+            out |= np.broadcast_to(past, out.shape)
+    return out
+
+
 def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_FILL,
                        background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> InputView:
     """Load and detect the person, then crop/scale/centre/composite (contract step 1)."""
@@ -179,6 +206,8 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
 
     mask = framed(det.mask)
     fit_mask = None if det.fit_mask is det.mask else framed(det.fit_mask)
+    unseen = beyond_the_frame(det.fit_mask, det.keypoints, (shift[0, 2], shift[1, 2], shift[0, 2] + new_w,
+                                                            shift[1, 2] + new_h), size)
     bg = np.asarray(background, np.float32)
     rgba = np.empty((size, size, 4), np.float32)
     rgba[..., :3] = np.clip(rgb, 0.0, 1.0) * mask[..., None] + bg * (1.0 - mask[..., None])
@@ -186,7 +215,8 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
     keypoints = det.keypoints.astype(np.float64) * np.array([sx, sy]) + shift[:, 2]
     return InputView(rgba=rgba, keypoints=keypoints.astype(np.float32),
                      confidences=det.confidences.astype(np.float32), scale=float(scale),
-                     warnings=list(det.warnings), world_keypoints=det.world_keypoints, fit_mask=fit_mask)
+                     warnings=list(det.warnings), world_keypoints=det.world_keypoints, fit_mask=fit_mask,
+                     unseen=unseen if unseen.any() else None)
 
 
 # ----------------------------------------------------------------------------- colouring helpers
@@ -406,7 +436,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     torch.manual_seed(seed)
     fit_mask = view.mask if view.fit_mask is None else view.fit_mask
     obs = FrameObservation(0, view.keypoints, view.confidences, fit_mask.copy(), list(view.warnings),
-                           world_keypoints=view.world_keypoints)
+                           world_keypoints=view.world_keypoints, unseen=view.unseen)
     fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),
                    logger=lg)
     vertices = fit.output.vertices[0].numpy().astype(np.float64)

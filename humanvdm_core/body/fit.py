@@ -34,9 +34,11 @@ Contract:
     towards the camera;
   * silhouette, one-sided by default: projected vertices (a fixed subsample) must fall inside the
     mask (the mask's outside distance transform sampled bilinearly at them; ``silhouette_weight``).
-    The other side, the mask's contour covered by the body (each contour point's distance to the
-    nearest projected vertex; ``silhouette_cover_weight``), is off by default: loose clothing is in
-    the mask but is not body, and covering it widens the body. Both in units of
+    Pixels a frame does not show (``FrameObservation.unseen``: beyond the edge of a photo that cuts
+    the person off) cost nothing: the fit would otherwise fold the legs it cannot see behind the ones
+    it can. The other side, the mask's contour covered by the body (each contour point's distance to
+    the nearest projected vertex; ``silhouette_cover_weight``), is off by default: loose clothing is
+    in the mask but is not body, and covering it widens the body. Both in units of
     ``SILHOUETTE_SIGMA`` of the image size;
   * priors: squared axis-angle of the fitted joints (stronger with fewer than five views:
     ``FitOptions.single_view_pose_prior_weight``, or the much weaker
@@ -214,7 +216,9 @@ class FrameObservation:
     """What one frame tells the fit. ``keypoints`` (17, 2) pixels, ``confidences`` (17,) (all 0 when
     only the silhouette is known), ``mask`` (H, W) float in [0, 1]; ``world_keypoints`` (17, 3) the
     detector's 3D joints in this frame's camera axes (x right, y down, z away from the camera; any
-    origin and scale: only directions are used), with the same ``confidences``, or None."""
+    origin and scale: only directions are used), with the same ``confidences``, or None; ``unseen``
+    (H, W) bool: pixels the frame does not show, where the person may go on (beyond the edge of a
+    photo that cuts them off), or None (every pixel shown)."""
 
     index: int  # frame index in the frame set
     keypoints: np.ndarray
@@ -222,6 +226,7 @@ class FrameObservation:
     mask: np.ndarray
     warnings: list[str] = field(default_factory=list)
     world_keypoints: np.ndarray | None = None
+    unseen: np.ndarray | None = None
 
     @property
     def has_keypoints(self) -> bool:
@@ -410,13 +415,16 @@ def _bone_matrices() -> tuple[np.ndarray, np.ndarray]:
     return start, end
 
 
-def _silhouette_data(mask: np.ndarray, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Outside distance transform (size, size) in units of the image size, and contour points
-    (CONTOUR_POINTS, 2) in [0, 1] image coordinates."""
+def _silhouette_data(mask: np.ndarray, size: int, rng: np.random.Generator,
+                     unseen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Outside distance transform (size, size) in units of the image size, 0 on the ``unseen`` pixels
+    (the frame does not show them), and contour points (CONTOUR_POINTS, 2) in [0, 1] image coordinates."""
     import cv2
 
     small = cv2.resize(mask.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) > 0.5
     dt = cv2.distanceTransform((~small).astype(np.uint8), cv2.DIST_L2, 5).astype(np.float32) / size
+    if unseen is not None:
+        dt[cv2.resize(unseen.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) > 0.5] = 0.0
     contours, _ = cv2.findContours(small.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     pts = np.concatenate([c[:, 0, :] for c in contours], 0).astype(np.float32) if contours else np.zeros((0, 2))
     if len(pts) == 0:
@@ -448,7 +456,8 @@ class _Problem:
         self.size = torch.tensor([cams.width, cams.height], dtype=dt)
         self.height = float(cams.height)
         rng = np.random.default_rng(options.seed)
-        dts, contours = zip(*[_silhouette_data(o.mask, SILHOUETTE_SIZE, rng) for o in observations], strict=True)
+        dts, contours = zip(*[_silhouette_data(o.mask, SILHOUETTE_SIZE, rng, o.unseen) for o in observations],
+                            strict=True)
         self.dt = torch.as_tensor(np.stack(dts)[:, None], dtype=dt)  # (F, 1, S, S)
         self.contours = torch.as_tensor(np.stack(contours), dtype=dt)  # (F, C, 2)
         nv = model.num_vertices
