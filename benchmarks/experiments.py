@@ -428,21 +428,22 @@ def part_speed(ctx: Context) -> dict:
 
 
 def speed_chart(path: Path, points: list[dict], mode: str) -> None:
-    """Two panels (PSNR, masked SSIM) vs time; the Pareto front joined; labels with the Gaussian count."""
+    """Two panels (PSNR, masked SSIM) vs time; the Pareto front joined; each point numbered, the numbers
+    keyed below the panels with the point's label and Gaussian count (labels next to clustered points
+    would overlap)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 6.2))
     for ax, key, name in zip(axes, ("psnr", "masked_ssim"), ("four-view PSNR (dB)", "four-view masked SSIM"),
                              strict=True):
-        for p in points:
+        for i, p in enumerate(points, 1):
             front = p[f"pareto_{key}"]
             ax.scatter(p["time_s"], p[key], s=60 if front else 30, c="tab:red" if front else "tab:gray",
                        zorder=3)
-            ax.annotate(f"{p['label']}\n{p['num_gaussians']:,} G", (p["time_s"], p[key]), fontsize=7,
-                        xytext=(4, 4), textcoords="offset points")
+            ax.annotate(str(i), (p["time_s"], p[key]), fontsize=8, xytext=(4, 4), textcoords="offset points")
         front = sorted((p for p in points if p[f"pareto_{key}"]), key=lambda p: p["time_s"])
         if front:
             ax.plot([p["time_s"] for p in front], [p[key] for p in front], "-o", c="tab:red", lw=1, ms=3,
@@ -454,8 +455,13 @@ def speed_chart(path: Path, points: list[dict], mode: str) -> None:
         ax.set_xlabel("time per photo (s, stage wall times summed)")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
-    fig.suptitle(f"speed vs accuracy ({mode} mode; G = Gaussians)")
-    fig.tight_layout()
+    fig.suptitle(f"speed vs accuracy ({mode} mode)")
+    key_lines = [f"{i}  {p['label']} ({p['num_gaussians']:,} Gaussians)" for i, p in enumerate(points, 1)]
+    columns = 3
+    rows = -(-len(key_lines) // columns)
+    for c in range(columns):
+        fig.text(0.03 + c / columns, 0.02, "\n".join(key_lines[c * rows:(c + 1) * rows]), fontsize=8, va="bottom")
+    fig.tight_layout(rect=(0, 0.05 + 0.035 * rows, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
