@@ -3,9 +3,10 @@
 Each :class:`Case` is one failure category with a photo that carries truth: a fixture scan
 (RenderPeople Mei) or a synthetic Anny subject (:mod:`testdata.synthetic`, posed and dressed
 for the case) is turned so that its view from azimuth 0 is the photo, rendered at elevation 10 deg
-over white and then edited in 2D where the category asks for it (cut at the knees, put in a very
-wide frame, a second person beside it, a cluttered background, cut past the wrists). The *truth* is the same mesh: an
-orbit frame at azimuth ``a`` of the photo is compared with the mesh rendered at that frame's camera.
+over white and then edited in 2D where the category asks for it (cut at the knees or past the
+wrists, put in a very wide frame, a second person beside it, a cluttered background). The *truth* is
+the same mesh: an orbit frame at azimuth ``a`` of the photo is compared with the mesh rendered at
+that frame's camera.
 
 A case passes when all of its checks hold:
 
@@ -200,7 +201,7 @@ def make_photo(case: Case, mesh, work: Path, photo_size: int) -> np.ndarray:
         return rgba[:cut, :, :3]
     if case.edit == "crop_wrists":
         xs = np.nonzero(rgba[..., 3].max(axis=0) > 0.5)[0]
-        inset = int(0.14 * (xs.max() - xs.min()))  # a T-pose's hands: the outer ~12 % of its span each side
+        inset = int(0.14 * (xs.max() - xs.min()))  # past the wrists: a T-pose's hands are the outer ~12 % each side
         return rgba[:, xs.min() + inset:xs.max() - inset, :3]
     if case.edit == "wide":
         canvas = np.ones((size, 4 * size, 3), np.float32)
