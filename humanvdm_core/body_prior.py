@@ -38,7 +38,8 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    -- a closed surface whose input view is the person's whole mask, the body's depth carried out to
    the silhouette and inflated where the body does not reach (loose clothing, hair, hats, held
    objects), textured with the photo on the seen side and, on the unseen side, each body part's own
-   visible colour, print-free, hair on the back of the head. Geometry ``body`` (the ablation): the
+   visible colour, print-free, hair on the back of the head (in profile the head's far side is
+   its near side mirrored). Geometry ``body`` (the ablation): the
    naked body coloured per vertex (:func:`colour_body`: seen vertices from the photo, hidden ones
    mirrored from the front, hair on the back of the head).
 6. Centring: the proxy (and the fitted joints) are scaled about the input camera's centre so that the
@@ -463,7 +464,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
             hair = hair_colour(view.rgba[..., :3], view.mask, px)
         clothed = build_clothed_proxy(vertices, faces, weights, list(model.joint_names), front_cam,
                                       view.rgba[..., :3], view.mask, head_colour=hair,
-                                      legs_hidden=_ankles_hidden(view.confidences))
+                                      legs_hidden=_ankles_hidden(view.confidences), profile=turn >= PROFILE_DEG)
         lg.info("clothed proxy: %d vertices, %d faces; the body covers %.0f%% of the silhouette",
                 len(clothed.mesh.vertices), len(clothed.mesh.faces), 100 * clothed.body_fraction)
         if clothed.body_fraction < LOOSE_FRACTION:

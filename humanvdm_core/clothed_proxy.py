@@ -86,7 +86,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
      in the photo, a forehead showing there left out (``head_colour``, from
      :func:`humanvdm_core.body_prior.hair_colour`), so no face appears on the back; when the photo
      shows the person's back (``facing_away``), the unseen side is the front and the head there takes
-     the head's own median colour (no face is invented).
+     the head's own median colour (no face is invented); when it shows the person in profile
+     (``profile``), the far side of the head is the near side mirrored: the photo's own colours there.
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -520,7 +521,7 @@ def without_print_runs(per_row: np.ndarray, shown: np.ndarray, height: int, band
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
                         back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
-                        loose: np.ndarray | None = None) -> np.ndarray:
+                        loose: np.ndarray | None = None, profile: bool = False) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -537,7 +538,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     ``loose`` (the mask's pixels outside the body), each of its connected regions at least
     :data:`LOOSE_OWN_OPEN` of the frame thick and :data:`LOOSE_OWN_MIN` of the mask large (a held object,
     a hat, a coat's or a skirt's flare) takes its own median per row, not the nearest body part's, and
-    is left out of the parts' medians: a box held beside the jeans is not jeans at the back."""
+    is left out of the parts' medians: a box held beside the jeans is not jeans at the back. With
+    ``profile`` (the photo shows the person from the side) the far side of the head is its near side
+    mirrored, and the camera's rays cross the head's midplane, so one pixel shows both: wherever the head
+    is both the nearest and the farthest surface it keeps the photo's own colours (the other cheek, ear
+    and hair), not ``head_colour`` over half a face."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
@@ -614,6 +619,9 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     if head_colour is not None:
         hair = distinct_hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
         out[hair & (back_part != PARTS.index("hands"))] = head_colour
+    if profile:
+        mirrored = person & (front_part == head) & (back_part == head)
+        out[mirrored] = photo[mirrored]
     return out
 
 
@@ -814,14 +822,15 @@ def horizontal_reach(camera: Cameras) -> np.ndarray:
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
-                        legs_hidden: bool = False) -> ClothedProxy:
+                        legs_hidden: bool = False, profile: bool = False) -> ClothedProxy:
     """The clothed proxy of a person (see the module docstring).
 
     ``vertices`` (V, 3) / ``faces`` / ``skinning_weights`` (V, J) / ``joint_names``: the fitted body in
     the world; ``camera``: the input view (one camera, ``size`` x ``size``); ``rgb`` (size, size, 3) and
     ``mask`` (size, size): the input view's photo and person mask; ``head_colour``: the colour of the
     unseen side of the head (hair), None to use the head's own median colour; ``legs_hidden``: the
-    photo does not show the ankles (a long dress or coat), so the fitted legs' depth is a guess."""
+    photo does not show the ankles (a long dress or coat), so the fitted legs' depth is a guess; ``profile``:
+    the photo shows the person from the side, so the unseen side of the head mirrors the seen one."""
     size = camera.width
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
@@ -968,7 +977,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bs = np.where(bknown, bs, fs).astype(np.int64)
     loose_full = cv2.resize((domain & ~body).astype(np.uint8), (size, size),
                             interpolation=cv2.INTER_NEAREST).astype(bool)  # the mask outside the body
-    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full)
+    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = (cols + 0.5) * to_full / size
     v = 1.0 - (rows + 0.5) * to_full / size

@@ -102,6 +102,26 @@ def test_the_unseen_side_follows_the_garments_hem_and_the_neck_takes_the_collars
     assert np.allclose(out[10, 50], hair, atol=0.05)  # the head's back
 
 
+def test_a_head_in_profile_keeps_its_own_colours_on_the_far_side():
+    """A head seen from the side: hair over its back half, skin (cheek, face) over its front half. Its
+    far side mirrors the near one, so in profile the unseen side keeps those colours pixel for pixel
+    (the other cheek, not hair over half a face); facing the camera, the back of the head is hair."""
+    size = 60
+    hair, skin = np.array((0.25, 0.15, 0.1), np.float32), np.array((0.85, 0.65, 0.5), np.float32)
+    photo = np.full((size, size, 3), 0.9, np.float32)
+    photo[5:25, 20:30], photo[5:25, 30:40] = hair, skin
+    photo[25:55, 20:40] = (0.2, 0.3, 0.7)  # the shirt
+    mask = np.zeros((size, size), np.float32)
+    mask[5:55, 20:40] = 1.0
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:25] = PARTS.index("head")
+    facing = unseen_side_colours(photo, mask, part, part, hair)
+    profile = unseen_side_colours(photo, mask, part, part, hair, profile=True)
+    assert np.allclose(facing[15, 35], hair, atol=0.02)
+    assert np.allclose(profile[15, 35], skin, atol=0.02) and np.allclose(profile[15, 25], hair, atol=0.02)
+    assert np.allclose(profile[40, 30], facing[40, 30])  # below the head nothing changes
+
+
 def test_what_one_arm_holds_stays_off_the_other_arms_back():
     """Both arms in a light sleeve; the right one's visible pixels covered by a dark held folder over
     rows 20-60. Coloured per side, the left arm's back keeps the sleeve's colour (one median over both
@@ -640,6 +660,42 @@ def test_the_run_says_what_it_guessed(tmp_path, case, expected):
         assert not any("facing" in w or "from behind" in w for w in proxy.warnings), proxy.warnings
     else:
         assert not any("in profile" in w for w in proxy.warnings), proxy.warnings
+
+
+@pytest.mark.slow
+def test_the_far_side_of_a_head_photographed_in_profile_is_a_head_seen_from_that_side(tmp_path, monkeypatch):
+    """A synthetic person photographed from the side (azimuth 90): from the opposite side (the orbit's
+    azimuth 180) the proxy's head shows hair and the face's other side as the truth does, not the
+    hair colour over half a face: its mean colour error over the head's rows falls by more than a fifth
+    against the same run with the profile rule off (measured 0.27-0.30 -> 0.14-0.21)."""
+    pytest.importorskip("anny")
+    pytest.importorskip("mediapipe")
+    from humanvdm_core import body_prior
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+    from testdata.synthetic import SubjectSpec, make_subject
+
+    torch.set_num_threads(1)
+    mesh = normalize_scan(load_scan(make_subject(SubjectSpec(seed=3), tmp_path / "subject", texture_size=256)))
+    cams = orbit_cameras(2, 256, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([90.0, 270.0]))
+    truth = render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba
+    photo = tmp_path / "photo.png"
+    write_png(photo, truth[0, ..., :3])
+    rows = np.nonzero((truth[1, ..., 3] > 0.5).any(axis=1))[0]
+    head = slice(rows.min(), rows.min() + int(0.13 * np.ptp(rows)))
+    seen = truth[1, head, :, 3] > 0.5
+
+    def head_error() -> float:
+        proxy = body_prior.build_body_proxy(photo, size=256, iterations=60)
+        far = orbit_cameras(1, 256, 33.8, 10.0, float(proxy.cameras.radius[0]), azimuths_deg=np.array([180.0]))
+        out = render_views(proxy.clothed.mesh, far, (1.0, 1.0, 1.0)).rgba[0]
+        return float(np.abs(out[head, :, :3] - truth[1, head, :, :3]).mean(axis=-1)[seen].mean())
+
+    mirrored = head_error()
+    monkeypatch.setattr(body_prior, "PROFILE_DEG", 180.0)  # the profile rule off: the hair colour behind
+    assert mirrored < 0.8 * head_error() and mirrored < 0.25, mirrored
 
 
 def test_outside_of_keeps_enclosed_holes_apart():
