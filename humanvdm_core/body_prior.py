@@ -50,8 +50,9 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 7. Frames: the proxy rendered at every orbit camera over ``background`` (RGBA, A = coverage); the
    azimuth-0 frame is then REPLACED by the preprocessed input view itself, so the input view is exact.
 8. Warnings (``BodyProxy.warnings``, each naming the photo): what the stand-in had to guess -- legs or
-   hands hidden, a seated pose (the seat is not in the mask), much of the silhouette outside the body,
-   the facing -- plus the detector's own (e.g. a second person).
+   hands hidden, a seated pose (the seat is not in the mask), a forearm reaching towards or away from
+   the camera (its depth, and what it holds), much of the silhouette outside the body, the facing --
+   plus the detector's own (e.g. a second person).
 
 ``frames`` is (N, size, size, 4) float32 (RGB sRGB values over ``background``), ``cameras`` a
 :class:`~humanvdm_core.cameras.Cameras`. Deterministic: same photo and arguments, same output (on one
@@ -341,6 +342,7 @@ GEOMETRIES = ("clothed", "body")  # what the orbit is rendered from: the clothed
 LOOSE_FRACTION = 0.8  # the body covering less of the silhouette than this: clothing/hair/objects are guessed
 HIDDEN_CONFIDENCE = MIN_CONFIDENCE  # a keypoint less sure than the detector's "confident" is hidden
 SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
+REACH_DEG = 45.0  # a fitted forearm this far out of the photo's plane reaches towards (or away from) the camera
 PROFILE_DEG = 60.0  # the fitted shoulders' line this far out of the image plane: the person is in profile
 
 
@@ -350,9 +352,30 @@ def _ankles_hidden(confidences: np.ndarray) -> bool:
     return bool(np.all((c > 0) & (c < HIDDEN_CONFIDENCE)))
 
 
-def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
+def reaching_forearms(coco17: np.ndarray, w2c: np.ndarray) -> list[tuple[str, float]]:
+    """The forearms of the fitted body's COCO joints ``coco17`` (17, 3, world) that point at least
+    :data:`REACH_DEG` out of the image plane of the camera ``w2c`` (4, 4): ``("left" | "right"`` (the
+    person's own), the angle in degrees, positive towards the camera``)``. Such an arm is held before the
+    body (a cup, a binder, a hand pointing at the camera) or behind it, and a single photo does not show
+    how far it reaches. Hanging forearms come out 10-35 deg towards the camera (MediaPipe's lean), an
+    arm holding a binder against the chest 48-52."""
+    out = []
+    rotation = np.asarray(w2c, np.float64)[:3, :3]
+    for side, (elbow, wrist) in (("left", (7, 9)), ("right", (8, 10))):
+        forearm = (np.asarray(coco17[wrist], np.float64) - coco17[elbow]) @ rotation.T  # camera axes, +z away
+        length = float(np.linalg.norm(forearm))
+        if length < 1e-6:
+            continue
+        angle = float(np.degrees(np.arcsin(np.clip(-forearm[2] / length, -1.0, 1.0))))
+        if abs(angle) >= REACH_DEG:
+            out.append((side, angle))
+    return out
+
+
+def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarray | None = None) -> list[str]:
     """What the photo cannot tell the stand-in, from the detections and the fitted body's COCO joints
-    (17, 3; world, Y up): hidden legs or hands, a seated pose."""
+    (17, 3; world, Y up): hidden legs or hands, a seated pose and, with the input camera ``w2c``, a
+    forearm reaching towards or away from the camera (:func:`reaching_forearms`)."""
     out = []
     conf = view.confidences
     hidden_legs = []
@@ -371,6 +394,11 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray) -> list[str]:
     if np.all(angle > SEATED_THIGH_DEG):
         out.append(f"{name}: the person is seated or crouching (thighs {angle.min():.0f}-{angle.max():.0f} deg from "
                    "vertical): the seat is not in the photo's mask, so the person floats; what is under them is guessed")
+    for side, angle in reaching_forearms(coco17, w2c) if w2c is not None else []:
+        if view.confidences[9 if side == "left" else 10] >= HIDDEN_CONFIDENCE:  # a hidden hand has its own warning
+            out.append(f"{name}: the {side} forearm points {'towards' if angle > 0 else 'away from'} the camera "
+                       f"({abs(angle):.0f} deg out of the photo's plane): how far it, and anything it holds, "
+                       "stands out from the body is guessed")
     return out
 
 
@@ -448,7 +476,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
         facing_warning = (f"{name} shows the person in profile (shoulders turned {turn:.0f} deg from the camera): "
                           "their front and back are seen edge-on, so both are guessed")
     warnings += [facing_warning] if facing_warning else []
-    warnings += _pose_warnings(name, view, coco17)
+    warnings += _pose_warnings(name, view, coco17, front_cam.w2c[0])
 
     weights = model.skinning_weights.numpy()
     head_ids = [model.joint_names.index(n) for n in HEAD_JOINTS if n in model.joint_names]

@@ -195,6 +195,57 @@ def test_a_hidden_knee_is_named_and_a_profile_is_measured_from_the_shoulders():
     assert shoulder_turn_deg(coco, w2c) > 89.0
 
 
+def test_a_forearm_reaching_out_of_the_photos_plane_is_named():
+    """A forearm pointing 67 deg towards the camera (held before the body) or away from it is named with
+    its side and angle; a hanging one, or one 30 deg forward (MediaPipe's lean on hanging arms), is not;
+    a hidden hand keeps its own warning only."""
+    from types import SimpleNamespace
+
+    from humanvdm_core.body_prior import _pose_warnings, reaching_forearms
+
+    coco = np.zeros((17, 3))
+    coco[[11, 12], 1], coco[[13, 14], 1], coco[[15, 16], 1] = 1.0, 0.55, 0.1
+    coco[7], coco[8] = (0.2, 1.1, 0.0), (-0.2, 1.1, 0.0)  # elbows
+    coco[9], coco[10] = (0.2, 0.85, 0.0), (-0.2, 1.0, -0.23)  # the left hangs, the right reaches
+    w2c = np.eye(4)  # camera axes = world axes: +z away from the camera
+    ((side, angle),) = reaching_forearms(coco, w2c)
+    assert side == "right" and 66.0 < angle < 67.0
+    coco[10] = (-0.2, 1.0, 0.23)
+    assert reaching_forearms(coco, w2c)[0][1] < -65.0  # away from the camera: behind the body, or a back view
+    coco[10] = (-0.2, 1.1 - 0.25 * np.cos(np.radians(30)), -0.25 * np.sin(np.radians(30)))
+    assert reaching_forearms(coco, w2c) == []
+    coco[10] = (-0.2, 1.0, -0.23)
+    conf = np.ones(17)
+    (one,) = _pose_warnings("p.png", SimpleNamespace(confidences=conf), coco, w2c)
+    assert one.startswith("p.png: the right forearm points towards the camera (67 deg out of the photo's plane)"), one
+    conf[10] = 0.1
+    (hand,) = _pose_warnings("p.png", SimpleNamespace(confidences=conf), coco, w2c)
+    assert "a hand is hidden" in hand
+
+
+@pytest.mark.slow
+@pytest.mark.fixtures
+def test_a_binder_held_before_the_body_is_said_and_hanging_arms_are_not(tmp_path, fixtures_dir):
+    """RenderPeople Mei holds a binder against her chest with her right forearm reaching towards the
+    camera (52 deg out of the photo's plane, fitted at 320 px): the run names it; sith_014's hanging
+    arms (39 / 27 deg, MediaPipe's forward lean) get no such warning."""
+    from humanvdm_core.body_prior import build_body_proxy
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    torch.set_num_threads(1)
+    mesh = normalize_scan(load_scan(fixtures_dir / "scans" / "renderpeople_rp_mei_posed_001"))
+    cams = orbit_cameras(1, 320, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([0.0]))
+    write_png(tmp_path / "mei.png", render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba[0, ..., :3])
+    mei = build_body_proxy(tmp_path / "mei.png", size=320, iterations=60)
+    assert any(w.startswith("mei.png: the right forearm points towards the camera") for w in mei.warnings), mei.warnings
+    assert not any("left forearm" in w for w in mei.warnings), mei.warnings
+    sith = build_body_proxy(fixtures_dir / "photos" / "sith_014_rgba.png", size=320, iterations=60)
+    assert not any("forearm" in w for w in sith.warnings), sith.warnings
+
+
 def test_centring_moves_the_middle_onto_the_axis_and_keeps_the_view():
     """Points off the orbit's axis (a seated person's knees in front of the hips): after
     :func:`centring_transform` the middle of their box lies on the axis, and the input camera sees
