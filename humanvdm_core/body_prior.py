@@ -357,7 +357,7 @@ def reaching_forearms(coco17: np.ndarray, w2c: np.ndarray) -> list[tuple[str, fl
     :data:`REACH_DEG` out of the image plane of the camera ``w2c`` (4, 4): ``("left" | "right"`` (the
     person's own), the angle in degrees, positive towards the camera``)``. Such an arm is held before the
     body (a cup, a binder, a hand pointing at the camera) or behind it, and a single photo does not show
-    how far it reaches. Hanging forearms come out 10-35 deg towards the camera (MediaPipe's lean), an
+    how far it reaches. Hanging forearms come out 8-39 deg towards the camera (MediaPipe's lean), an
     arm holding a binder against the chest 48-52."""
     out = []
     rotation = np.asarray(w2c, np.float64)[:3, :3]
