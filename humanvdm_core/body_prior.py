@@ -343,6 +343,7 @@ LOOSE_FRACTION = 0.8  # the body covering less of the silhouette than this: clot
 HIDDEN_CONFIDENCE = MIN_CONFIDENCE  # a keypoint less sure than the detector's "confident" is hidden
 SEATED_THIGH_DEG = 50.0  # both thighs this far from vertical: a seated (or crouching) pose
 REACH_DEG = 45.0  # a fitted forearm this far out of the photo's plane reaches towards (or away from) the camera
+FOREARMS = {"left": (7, 9), "right": (8, 10)}  # COCO-17 elbow, wrist per side (the person's own)
 PROFILE_DEG = 60.0  # the fitted shoulders' line this far out of the image plane: the person is in profile
 
 
@@ -361,7 +362,7 @@ def reaching_forearms(coco17: np.ndarray, w2c: np.ndarray) -> list[tuple[str, fl
     arm holding a binder against the chest 48-52."""
     out = []
     rotation = np.asarray(w2c, np.float64)[:3, :3]
-    for side, (elbow, wrist) in (("left", (7, 9)), ("right", (8, 10))):
+    for side, (elbow, wrist) in FOREARMS.items():
         forearm = (np.asarray(coco17[wrist], np.float64) - coco17[elbow]) @ rotation.T  # camera axes, +z away
         length = float(np.linalg.norm(forearm))
         if length < 1e-6:
@@ -395,7 +396,7 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarr
         out.append(f"{name}: the person is seated or crouching (thighs {angle.min():.0f}-{angle.max():.0f} deg from "
                    "vertical): the seat is not in the photo's mask, so the person floats; what is under them is guessed")
     for side, angle in reaching_forearms(coco17, w2c) if w2c is not None else []:
-        if view.confidences[9 if side == "left" else 10] >= HIDDEN_CONFIDENCE:  # a hidden hand has its own warning
+        if view.confidences[FOREARMS[side][1]] >= HIDDEN_CONFIDENCE:  # a hidden hand has its own warning
             out.append(f"{name}: the {side} forearm points {'towards' if angle > 0 else 'away from'} the camera "
                        f"({abs(angle):.0f} deg out of the photo's plane): how far it, and anything it holds, "
                        "stands out from the body is guessed")
