@@ -1,8 +1,8 @@
 """The body-prior orbit against the truth on synthetic subjects posed and dressed for the hard cases.
 
 Subjects: ``bench_pipeline``'s three (``results/pipeline.json``: subject0 seated, subject1 arms raised,
-subject2 standing), ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_hair``, ``walking_skirt``) and
-``a_pose`` (arms held out 45 deg to the side), each built with
+subject2 standing), ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_hair``, ``walking_skirt``, ``long_coat``),
+``a_pose`` (arms held out 45 deg to the side) and ``hand_to_face`` (the right palm on the cheek), each built with
 ``make_subject`` (512² texture) and normalised like a scan. The photo is the subject rendered at
 azimuth 0, elevation 10°, 576² over white; ``body_prior.build_body_proxy`` (what ``diffuse``'s
 body-prior backend renders its orbit from) is rendered at azimuth 0 / 90 / 180 / 270 and scored against
@@ -47,6 +47,7 @@ def specs() -> dict:
             out[r["subject"]] = SubjectSpec.from_dict(r["spec"])
     out.update(GARMENT_EXAMPLES)
     out["a_pose"] = SubjectSpec(pose="a-pose", gender=0.3, seed=31)  # arms held out to the side, in the body's plane
+    out["hand_to_face"] = SubjectSpec(pose="hand-to-face", seed=7)  # the right palm on the cheek
     return out
 
 

@@ -7,8 +7,9 @@ Contract:
   :data:`POSES`, skin tone, hair, clothing (shirt colours/pattern/sleeves/printed text, lower
   garment kind/colours/pattern, shoes) and a ``seed``; all of that is painted on the body. Loose
   garments that are not the body are separate meshes (see "Garment meshes" below): ``dress``
-  (:data:`DRESSES`: ``"none"``, ``"skirt"`` waist to knee, ``"long"`` waist to ankle, a gown) with
-  ``dress_flare`` (the hem's half-width in metres, 0 = automatic: 1.5x (skirt) / 2x (long) the
+  (:data:`DRESSES`: ``"none"``, ``"skirt"`` waist to knee, ``"long"`` waist to ankle, a gown,
+  ``"coat"`` shoulders to mid-calf) with
+  ``dress_flare`` (the hem's half-width in metres, 0 = automatic: 1.5x (skirt) / 2x (long) / 1.3x (coat) the
   hip half-width), ``dress_color``/``dress_color2``/``dress_pattern`` (:data:`DRESS_PATTERNS`),
   and ``long_hair`` (bool). They default to off; :meth:`SubjectSpec.to_dict` (and so truth
   ``spec_json``) leaves them out while at their defaults, so specs without garments give the same
@@ -59,7 +60,9 @@ Contract:
 
   - The dress: a flared surface of revolution about a vertical axis, rings of 96 vertices from the
     painted waist (``spine04`` joint + 1 cm) down to the hem (skirt: just below the knee joints,
-    12% of the way to the ankles; long: half the ankle joints' height). Each ring is an ellipse
+    12% of the way to the ankles; long: half the ankle joints' height; a coat: from 1 cm below the
+    shoulder joints to 45% of the way from the knees to the ankles, 1.3x the hip half-width at the
+    hem, shallow folds near the hem only). Each ring is an ellipse
     growing from the waist's cross-section (+1.2 cm) to the hem's ellipse (half-width
     ``dress_flare``, half-depth 0.85 of it; the body and the folds may push the hem further out,
     truth ``dress_hem_half_width`` is measured on the mesh) along ``s ** 1.2`` (s = 0 at the
@@ -117,8 +120,12 @@ WORLD_CONVENTION = ("metres; Y up; facing +Z; person's left at +X; lowest vertex
 #   elbows out and slightly back;
 # - arms-raised: shoulders lifted 20 degrees, arms up and 22 (upper) / 12 (fore) degrees out;
 # - seated: thighs horizontal forward (hips flexed 90 degrees), shins near vertical (knees 84
-#   degrees), forearms forward onto the thighs; no seat.
-POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated")
+#   degrees), forearms forward onto the thighs; no seat;
+# - hand-to-face: two-bone IK puts the right wrist 7 cm outside and 12 cm below the right eye, the
+#   palm against the cheek and jaw, the elbow down in front of the chest; the left arm hangs.
+POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated", "hand-to-face")
+# the poses random_specs cycles through (fixed, so its subjects stay those of the recorded benchmarks)
+RANDOM_POSES: tuple[str, ...] = POSES[:6]
 
 RGB = tuple[int, int, int]
 SKIN_TONES: dict[str, RGB] = {
@@ -141,9 +148,11 @@ SLEEVES = ("short", "long")
 LOWER_GARMENTS = ("trousers", "shorts", "skirt")
 LOWER_PATTERNS = ("solid", "denim", "checks")
 HAIR_STYLES = ("short", "long")
-DRESSES = ("none", "skirt", "long")  # a loose garment mesh: none, waist to knee, waist to ankle (a gown)
+# a loose garment mesh: none, waist to knee, waist to ankle (a gown), shoulders to mid-calf (a long coat)
+DRESSES = ("none", "skirt", "long", "coat")
 DRESS_PATTERNS = ("solid", "stripes", "checks", "dots")
-GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised")  # dress poses
+GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised",  # dress poses
+                                  "hand-to-face")
 GARMENT_TEXTURE = "garments.png"
 _PALETTE: tuple[RGB, ...] = (
     (200, 30, 40), (30, 80, 180), (240, 200, 40), (30, 140, 70), (240, 240, 235), (25, 25, 30),
@@ -271,6 +280,12 @@ GARMENT_EXAMPLES: dict[str, SubjectSpec] = {
         gender=0.7, weight=0.6, pose="walking", skin_tone=SKIN_TONES["tan"], hair_color=HAIR_COLORS["dark-brown"],
         shirt_color=(30, 140, 70), shirt_pattern="stripes", lower="shorts", lower_color=(25, 25, 30),
         dress="skirt", dress_color=(240, 120, 30), dress_color2=(250, 245, 235), dress_pattern="dots", seed=13),
+    # a long camel coat (shoulders to mid-calf, its sleeves painted on the arms) over dark trousers
+    "long_coat": SubjectSpec(
+        gender=0.35, weight=0.55, pose="standing", skin_tone=SKIN_TONES["light"], hair_color=HAIR_COLORS["black"],
+        shirt_color=(176, 132, 84), shirt_color2=(176, 132, 84), shirt_pattern="solid", shirt_text="",
+        sleeves="long", lower="trousers", lower_pattern="solid", lower_color=(45, 45, 55),
+        shoe_color=(70, 40, 25), dress="coat", dress_color=(176, 132, 84), dress_color2=(120, 84, 50), seed=14),
 }
 
 
@@ -419,6 +434,19 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
         for s, side in sides:
             extra[f"shoulder01.{side}"] = np.array([0.0, 0.0, s * np.radians(20.0)])
             arm(s, side, _deg_dir(5.0, 22.0, up=True), _deg_dir(5.0, 12.0, up=True))
+            leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
+    elif name == "hand-to-face":
+        # the right palm against the right cheek and jaw (a phone call, a thoughtful pose), the elbow down
+        # in front of the chest; the left arm hangs
+        shoulder = joint["upperarm01.R"]
+        elbow, wrist = joint["lowerarm01.R"], joint["wrist.R"]
+        l1, l2 = np.linalg.norm(elbow - shoulder), np.linalg.norm(wrist - elbow)
+        target = joint["eye.R"] + np.array([-0.065, -0.12, 0.0])
+        upper, lower = _two_bone(shoulder, l1, l2, target, np.array([-0.2, -1.0, 0.8]))
+        aims["upperarm01.R"] = ("lowerarm01.R", upper)
+        aims["lowerarm01.R"] = ("wrist.R", lower)
+        arm(1.0, "L", _deg_dir(3.0, relaxed_out), _deg_dir(18.0, relaxed_out - 2.0))
+        for s, side in sides:
             leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
     elif name == "seated":
         for s, side in sides:
@@ -948,10 +976,14 @@ def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, grou
     hangs), with soft folds growing towards the hem. Returns the garment, its truth scalars, the
     outside grid (rows, segments, 3) and a per-vertex fold shade for the texture."""
     pts = _surface_samples(vertices, faces, np.isin(groups, [_TORSO, _LEG_L, _LEG_R, _FOOT_L, _FOOT_R]))
-    y_top = float(J["spine04"][1]) + 0.01  # the painted waist (the belt's top)
+    coat = spec.dress == "coat"
+    shoulder_y = 0.5 * float(J["upperarm01.L"][1] + J["upperarm01.R"][1])
+    # the painted waist (the belt's top); a coat from the shoulders
+    y_top = shoulder_y - 0.01 if coat else float(J["spine04"][1]) + 0.01
     knee_y = 0.5 * float(J["lowerleg01.L"][1] + J["lowerleg01.R"][1])
     ankle_y = 0.5 * float(J["foot.L"][1] + J["foot.R"][1])
-    y_hem = knee_y - 0.12 * (knee_y - ankle_y) if spec.dress == "skirt" else max(0.5 * ankle_y, 0.015)
+    y_hem = {"skirt": knee_y - 0.12 * (knee_y - ankle_y), "coat": knee_y - 0.45 * (knee_y - ankle_y)}.get(
+        spec.dress, max(0.5 * ankle_y, 0.015))
     rows = max(16, int(np.ceil((y_top - y_hem) / 0.02))) + 1
     ys = np.linspace(y_top, y_hem, rows)
     s = (y_top - ys) / (y_top - y_hem)  # 0 at the waist, 1 at the hem
@@ -969,7 +1001,7 @@ def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, grou
     a_top, b_top = 0.5 * (top.max(axis=0) - top.min(axis=0)) + _DRESS_MARGIN
     hips = band(float(J["root"][1]) - 0.03)
     hip_half_width = 0.5 * float(hips[:, 0].max() - hips[:, 0].min())
-    a_hem = float(spec.dress_flare) or (1.5 if spec.dress == "skirt" else 2.0) * hip_half_width
+    a_hem = float(spec.dress_flare) or {"skirt": 1.5, "coat": 1.3}.get(spec.dress, 2.0) * hip_half_width
     a_hem = max(a_hem, a_top)
     b_hem = max(0.85 * a_hem, b_top)
     f = s ** 1.2
@@ -985,9 +1017,9 @@ def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, grou
     r = np.maximum.accumulate(np.maximum(r_ellipse, need), axis=0)  # never narrower further down
     r = np.maximum(_circular_smooth(_circular_smooth(r, 7), 7), need)
     phase = rng.uniform(0.0, 2.0 * np.pi, size=2)
-    folds = 12 if spec.dress == "skirt" else 16
+    folds = {"skirt": 12, "coat": 8}.get(spec.dress, 16)
     fold = 0.5 + 0.5 * np.sin(folds * theta + phase[0] + 0.6 * np.sin(3 * theta + phase[1]))
-    amplitude = (0.018 if spec.dress == "skirt" else 0.026) * (a_hem / 0.3) * s ** 1.5
+    amplitude = {"skirt": 0.018, "coat": 0.008}.get(spec.dress, 0.026) * (a_hem / 0.3) * s ** (3.0 if coat else 1.5)
     r = r + amplitude[:, None] * fold[None]  # folds only push outwards
 
     def ring_points(radius: np.ndarray) -> np.ndarray:
@@ -1333,11 +1365,11 @@ def make_subject(spec: SubjectSpec, out_dir: str | Path, texture_size: int = TEX
 
 def random_specs(n: int, seed: int = 0) -> list[SubjectSpec]:
     """``n`` varied, reproducible specs: adults of both sexes and varied build, about 15% children,
-    skin tones and poses cycling through shuffled :data:`SKIN_TONES` and :data:`POSES` (so any
-    ``len(POSES)`` consecutive specs hold every pose), random hair and clothing."""
+    skin tones and poses cycling through shuffled :data:`SKIN_TONES` and :data:`RANDOM_POSES` (so any
+    ``len(RANDOM_POSES)`` consecutive specs hold each of them), random hair and clothing."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5BEC]))
     tones = [list(SKIN_TONES.values())[i] for i in rng.permutation(len(SKIN_TONES))]
-    poses = [POSES[i] for i in rng.permutation(len(POSES))]
+    poses = [RANDOM_POSES[i] for i in rng.permutation(len(RANDOM_POSES))]
     hairs = list(HAIR_COLORS.values())  # the last one, grey, only for the old
 
     def pick(options):

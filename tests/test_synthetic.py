@@ -28,6 +28,7 @@ from testdata.synthetic import (  # noqa: E402
     GARMENT_TEXTURE,
     HAIR_COLORS,
     POSES,
+    RANDOM_POSES,
     SKIN_TONES,
     TEXTURE_SIZE,
     TRUTH_SCHEMA,
@@ -149,6 +150,15 @@ def test_walking_feet_apart_in_depth(subjects):
     la, ra = kp(truth, "left_ankle"), kp(truth, "right_ankle")
     assert la[2] - ra[2] > 0.3  # left foot forward
     assert kp(truth, "right_wrist")[2] > kp(truth, "left_wrist")[2] + 0.2  # arms swing opposite
+
+
+def test_hand_to_face_puts_the_right_palm_on_the_cheek(subjects):
+    _, truth = subjects["hand-to-face"]
+    wrist, ear, eye = kp(truth, "right_wrist"), kp(truth, "right_ear"), kp(truth, "right_eye")
+    assert np.linalg.norm(wrist - ear) < 0.15 and wrist[1] < eye[1]  # by the cheek, below the eye
+    elbow, shoulder = kp(truth, "right_elbow"), kp(truth, "right_shoulder")
+    assert elbow[1] < shoulder[1] and elbow[2] > shoulder[2] + 0.1  # the elbow down, in front of the chest
+    assert kp(truth, "left_wrist")[1] < kp(truth, "left_hip")[1] + 0.05  # the left arm hangs
 
 
 def test_standing_and_a_pose_arms(subjects):
@@ -286,7 +296,7 @@ def test_random_specs_are_varied_and_reproducible():
     specs = random_specs(12, seed=5)
     assert specs == random_specs(12, seed=5)
     assert specs != random_specs(12, seed=6)
-    assert {s.pose for s in specs} == set(POSES)
+    assert {s.pose for s in specs} == set(RANDOM_POSES)
     assert len({s.skin_tone for s in specs}) >= 6
     assert min(s.gender for s in specs) < 0.4 < 0.6 < max(s.gender for s in specs)
     assert len({s.seed for s in specs}) == 12
@@ -330,7 +340,7 @@ def garments(tmp_path_factory) -> dict:
 def test_garment_spec_fields():
     assert not set(SubjectSpec().to_dict()) & {"dress", "dress_flare", "dress_color", "dress_color2",
                                                "dress_pattern", "long_hair"}
-    assert {s.pose for s in random_specs(12, seed=5)} == set(POSES)
+    assert {s.pose for s in random_specs(12, seed=5)} == set(RANDOM_POSES)
     assert not any(s.has_garments for s in random_specs(12, seed=5))
     for spec in GARMENT_EXAMPLES.values():
         assert spec.has_garments and SubjectSpec.from_dict(spec.to_dict()) == spec
@@ -470,6 +480,29 @@ def test_dress_widens_the_silhouette_at_knee_height(garments, name):
         # wider by about the dress's width less the legs'
         assert dressed - bare == pytest.approx(widths[name, view, "dress"] - widths[f"{name}/body", view, "legs"],
                                                abs=6)
+
+
+def test_a_long_coat_hangs_from_the_shoulders_to_mid_calf(tmp_path):
+    import trimesh
+
+    torch.set_num_threads(1)
+    obj = make_subject(GARMENT_EXAMPLES["long_coat"], tmp_path / "coat", texture_size=GARMENT_TEXTURE_SIZE)
+    truth = read_npz(obj.parent / "truth.npz", TRUTH_SCHEMA, TRUTH_VERSION)
+    assert str(truth["dress_kind"]) == "coat" and list(truth["garments"]) == ["dress"]
+    coat = trimesh.Trimesh(truth["dress_vertices"], truth["dress_faces"], process=False)
+    assert coat.is_watertight and coat.is_winding_consistent and coat.volume > 0
+    shoulder = np.mean([kp(truth, f"{s}_shoulder")[1] for s in ("left", "right")])
+    knee, ankle = (np.mean([kp(truth, f"{s}_{j}")[1] for s in ("left", "right")]) for j in ("knee", "ankle"))
+    assert shoulder - 0.06 < truth["dress_top_y"] < shoulder + 0.02
+    assert ankle + 0.3 * (knee - ankle) < truth["dress_hem_y"] < knee - 0.3 * (knee - ankle)
+    # it hangs: no narrower at the waist than at the chest, and wider than the thighs at the knees
+    hips = np.mean([kp(truth, f"{s}_hip")[1] for s in ("left", "right")])
+    width = {}
+    for name, y in (("chest", shoulder - 0.15), ("waist", 0.5 * (shoulder + hips) - 0.05)):
+        x = _section_points(truth["dress_vertices"], truth["dress_faces"], y)[:, 0]
+        width[name] = x.max() - x.min()
+    assert width["waist"] >= width["chest"] - 0.005
+    assert 2 * truth["dress_knee_half_width"] > 0.3 and 2 * truth["dress_knee_half_depth"] > 0.25
 
 
 def test_long_hair_hangs_below_the_neck_at_the_back(garments):
