@@ -403,12 +403,25 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
         aims[f"upperleg01.{side}"] = (f"lowerleg01.{side}", _side(upper, s))
         aims[f"lowerleg01.{side}"] = (f"foot.{side}", _side(lower, s))
 
-    sides = ((1.0, "L"), (-1.0, "R"))
     # arms hang clear of the hips: a heavier body needs them further out
     relaxed_out = 7.0 + 14.0 * max(0.0, spec_weight - 0.5) / 0.5
+
+    def hang(s: float, side: str) -> None:
+        arm(s, side, _deg_dir(3.0, relaxed_out), _deg_dir(18.0, relaxed_out - 2.0))
+
+    def reach(side: str, target: np.ndarray, pole: np.ndarray) -> None:
+        """The arm's wrist on ``target``, the elbow bending towards ``pole`` (two-bone IK)."""
+        shoulder = joint[f"upperarm01.{side}"]
+        elbow, wrist = joint[f"lowerarm01.{side}"], joint[f"wrist.{side}"]
+        l1, l2 = np.linalg.norm(elbow - shoulder), np.linalg.norm(wrist - elbow)
+        upper, lower = _two_bone(shoulder, l1, l2, target, pole)
+        aims[f"upperarm01.{side}"] = (f"lowerarm01.{side}", upper)
+        aims[f"lowerarm01.{side}"] = (f"wrist.{side}", lower)
+
+    sides = ((1.0, "L"), (-1.0, "R"))
     if name == "standing":
         for s, side in sides:
-            arm(s, side, _deg_dir(3.0, relaxed_out), _deg_dir(18.0, relaxed_out - 2.0))
+            hang(s, side)
             leg(s, side, _deg_dir(0.0, 3.0), _deg_dir(0.0, 3.0))
     elif name == "a-pose":
         for s, side in sides:
@@ -422,13 +435,8 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
         arm(1.0, "L", _deg_dir(-20.0, relaxed_out), _deg_dir(-8.0, relaxed_out))
     elif name == "hands-on-hips":
         for s, side in sides:
-            shoulder = joint[f"upperarm01.{side}"]
-            elbow, wrist = joint[f"lowerarm01.{side}"], joint[f"wrist.{side}"]
-            l1, l2 = np.linalg.norm(elbow - shoulder), np.linalg.norm(wrist - elbow)
             target = np.array([s * (body_half_width + 0.035), joint["root"][1] + 0.07, joint["root"][2] - 0.01])
-            upper, lower = _two_bone(shoulder, l1, l2, target, np.array([s * 1.0, 0.0, -0.6]))
-            aims[f"upperarm01.{side}"] = (f"lowerarm01.{side}", upper)
-            aims[f"lowerarm01.{side}"] = (f"wrist.{side}", lower)
+            reach(side, target, np.array([s * 1.0, 0.0, -0.6]))
             leg(s, side, _deg_dir(0.0, 7.0), _deg_dir(0.0, 7.0))
     elif name == "arms-raised":
         for s, side in sides:
@@ -438,14 +446,8 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
     elif name == "hand-to-face":
         # the right palm against the right cheek and jaw (a phone call, a thoughtful pose), the elbow down
         # in front of the chest; the left arm hangs
-        shoulder = joint["upperarm01.R"]
-        elbow, wrist = joint["lowerarm01.R"], joint["wrist.R"]
-        l1, l2 = np.linalg.norm(elbow - shoulder), np.linalg.norm(wrist - elbow)
-        target = joint["eye.R"] + np.array([-0.065, -0.12, 0.0])
-        upper, lower = _two_bone(shoulder, l1, l2, target, np.array([-0.2, -1.0, 0.8]))
-        aims["upperarm01.R"] = ("lowerarm01.R", upper)
-        aims["lowerarm01.R"] = ("wrist.R", lower)
-        arm(1.0, "L", _deg_dir(3.0, relaxed_out), _deg_dir(18.0, relaxed_out - 2.0))
+        reach("R", joint["eye.R"] + np.array([-0.065, -0.12, 0.0]), np.array([-0.2, -1.0, 0.8]))
+        hang(1.0, "L")
         for s, side in sides:
             leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
     elif name == "seated":
@@ -880,6 +882,22 @@ _UV_HAIR_INNER = (0.01, 0.01, 0.99, 0.05)
 _DRESS_SEGMENTS = 96  # vertices around a ring
 _DRESS_MARGIN = 0.012  # from the body (its support in each direction) to the dress's outside
 _DRESS_THICKNESS = 0.006
+
+
+@dataclass(frozen=True)
+class _Cut:
+    """How one kind of dress (:data:`DRESSES`) is cut; see the module docstring."""
+
+    from_shoulders: bool  # its top 1 cm below the shoulder joints, else 1 cm above the painted waist
+    hem: float | None  # the hem this fraction of the way from the knees to the ankles; None: half the ankles' height
+    flare: float  # the automatic hem half-width, times the hip half-width
+    folds: int  # around a ring
+    fold_depth: float  # metres at the hem for a hem half-width of 0.3 m
+    fold_power: float  # the folds grow towards the hem as s ** this (s = 0 at the top, 1 at the hem)
+
+
+_CUTS = {"skirt": _Cut(False, 0.12, 1.5, 12, 0.018, 1.5), "long": _Cut(False, None, 2.0, 16, 0.026, 1.5),
+         "coat": _Cut(True, 0.45, 1.3, 8, 0.008, 3.0)}
 _HAIR_CLEARANCE = 0.006  # from the body to the hair's inside
 _HAIR_THICKNESS = 0.016
 
@@ -969,21 +987,20 @@ def _surface_samples(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray, 
 
 def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray,
                 J: dict[str, np.ndarray], rng: np.random.Generator) -> tuple[Garment, dict, np.ndarray, np.ndarray]:
-    """The dress around the posed body: rings of :data:`_DRESS_SEGMENTS` vertices from the waist down
+    """The dress around the posed body, cut as :data:`_CUTS` says: rings of :data:`_DRESS_SEGMENTS` vertices from its top down
     to the hem, each an ellipse widening from the waist's to the hem's, pushed out wherever the
     torso, legs or feet (not the arms) come closer than :data:`_DRESS_MARGIN` (in each direction of a
     ring, beyond the body's support in that direction), never narrower than the ring above (cloth
     hangs), with soft folds growing towards the hem. Returns the garment, its truth scalars, the
     outside grid (rows, segments, 3) and a per-vertex fold shade for the texture."""
     pts = _surface_samples(vertices, faces, np.isin(groups, [_TORSO, _LEG_L, _LEG_R, _FOOT_L, _FOOT_R]))
-    coat = spec.dress == "coat"
+    cut = _CUTS[spec.dress]
     shoulder_y = 0.5 * float(J["upperarm01.L"][1] + J["upperarm01.R"][1])
-    # the painted waist (the belt's top); a coat from the shoulders
-    y_top = shoulder_y - 0.01 if coat else float(J["spine04"][1]) + 0.01
+    # from the shoulders, or from the painted waist (the belt's top)
+    y_top = shoulder_y - 0.01 if cut.from_shoulders else float(J["spine04"][1]) + 0.01
     knee_y = 0.5 * float(J["lowerleg01.L"][1] + J["lowerleg01.R"][1])
     ankle_y = 0.5 * float(J["foot.L"][1] + J["foot.R"][1])
-    y_hem = {"skirt": knee_y - 0.12 * (knee_y - ankle_y), "coat": knee_y - 0.45 * (knee_y - ankle_y)}.get(
-        spec.dress, max(0.5 * ankle_y, 0.015))
+    y_hem = max(0.5 * ankle_y, 0.015) if cut.hem is None else knee_y - cut.hem * (knee_y - ankle_y)
     rows = max(16, int(np.ceil((y_top - y_hem) / 0.02))) + 1
     ys = np.linspace(y_top, y_hem, rows)
     s = (y_top - ys) / (y_top - y_hem)  # 0 at the waist, 1 at the hem
@@ -1001,7 +1018,7 @@ def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, grou
     a_top, b_top = 0.5 * (top.max(axis=0) - top.min(axis=0)) + _DRESS_MARGIN
     hips = band(float(J["root"][1]) - 0.03)
     hip_half_width = 0.5 * float(hips[:, 0].max() - hips[:, 0].min())
-    a_hem = float(spec.dress_flare) or {"skirt": 1.5, "coat": 1.3}.get(spec.dress, 2.0) * hip_half_width
+    a_hem = float(spec.dress_flare) or cut.flare * hip_half_width
     a_hem = max(a_hem, a_top)
     b_hem = max(0.85 * a_hem, b_top)
     f = s ** 1.2
@@ -1017,9 +1034,8 @@ def _dress_mesh(spec: SubjectSpec, vertices: np.ndarray, faces: np.ndarray, grou
     r = np.maximum.accumulate(np.maximum(r_ellipse, need), axis=0)  # never narrower further down
     r = np.maximum(_circular_smooth(_circular_smooth(r, 7), 7), need)
     phase = rng.uniform(0.0, 2.0 * np.pi, size=2)
-    folds = {"skirt": 12, "coat": 8}.get(spec.dress, 16)
-    fold = 0.5 + 0.5 * np.sin(folds * theta + phase[0] + 0.6 * np.sin(3 * theta + phase[1]))
-    amplitude = {"skirt": 0.018, "coat": 0.008}.get(spec.dress, 0.026) * (a_hem / 0.3) * s ** (3.0 if coat else 1.5)
+    fold = 0.5 + 0.5 * np.sin(cut.folds * theta + phase[0] + 0.6 * np.sin(3 * theta + phase[1]))
+    amplitude = cut.fold_depth * (a_hem / 0.3) * s ** cut.fold_power
     r = r + amplitude[:, None] * fold[None]  # folds only push outwards
 
     def ring_points(radius: np.ndarray) -> np.ndarray:
