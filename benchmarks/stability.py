@@ -61,6 +61,7 @@ def synthetic_specs() -> dict:
         "walker": SubjectSpec(gender=0.2, pose="walking", shirt_color=(30, 80, 180), seed=23),
         "long_coat": GARMENT_EXAMPLES["long_coat"],
         "hand_to_face": SubjectSpec(pose="hand-to-face", seed=7),
+        "hands_on_head": SubjectSpec(pose="hands-on-head", seed=11),
     }
 
 
@@ -86,8 +87,10 @@ CASES: tuple[Case, ...] = (
     Case("gown", "loose dress / gown", "synthetic:gown", ("iou",)),
     Case("long_hair", "long hair", "synthetic:long_hair", ("iou",)),
     Case("hands_on_hips", "hands touching the body", "synthetic:hands_on_hips", ("iou",)),
-    Case("hand_to_face", "a hand touching the face", "synthetic:hand_to_face", ("warns:forearm", "iou"),
-         note="the right palm on the cheek, the forearm pointing at the camera"),
+    Case("hand_to_face", "a hand touching the face", "synthetic:hand_to_face", ("warns:on the head", "iou"),
+         note="the right palm on the cheek, the forearm rising from an elbow before the chest"),
+    Case("hands_on_head", "hands on the head", "synthetic:hands_on_head", ("warns:on the head", "iou"),
+         note="both hands resting on the crown, the elbows out to the sides"),
     Case("long_coat", "long coat", "synthetic:long_coat", ("iou",),
          note="a camel coat from the shoulders to mid-calf over dark trousers"),
     Case("child", "child proportions", "synthetic:child", ("iou",)),
@@ -108,7 +111,8 @@ CASES: tuple[Case, ...] = (
 QUICK_CASES = ("tiny_100px", "from_behind")
 NOT_COVERED = {
     "hand-hand contact / fingers":
-        "no synthetic pose or fixture scan has them yet (hands_on_hips and hand_to_face cover a hand on the body)",
+        "no synthetic pose or fixture scan has them yet (hands_on_hips, hand_to_face and hands_on_head cover "
+        "a hand on the body)",
 }
 
 

@@ -32,8 +32,8 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
    directions, the mask one-sided so clothing never stretches the body, the torso leaning no further
    than the landmarks show (a lean of theirs under 10 deg counts as upright), an arm held out to the
-   side kept in the body's plane, a person standing still kept on straight legs with the feet below
-   the hips).
+   side kept in the body's plane, a hand the photo shows on the head touching it, a person standing
+   still kept on straight legs with the feet below the hips).
 5. Geometry ``clothed`` (default): the clothed proxy (:func:`humanvdm_core.clothed_proxy.build_clothed_proxy`)
    -- a closed surface whose input view is the person's whole mask, the body's depth carried out to
    the silhouette and inflated where the body does not reach (loose clothing, hair, hats, held
@@ -50,7 +50,8 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 7. Frames: the proxy rendered at every orbit camera over ``background`` (RGBA, A = coverage); the
    azimuth-0 frame is then REPLACED by the preprocessed input view itself, so the input view is exact.
 8. Warnings (``BodyProxy.warnings``, each naming the photo): what the stand-in had to guess -- legs or
-   hands hidden, a seated pose (the seat is not in the mask), a forearm reaching towards or away from
+   hands hidden, a seated pose (the seat is not in the mask), a hand on the head (placed touching it;
+   its arm then keeps its fitted depth before the torso in the proxy), a forearm reaching towards or away from
    the camera (its depth, and what it holds), much of the silhouette outside the body, the facing --
    plus the detector's own (e.g. a second person).
 
@@ -90,6 +91,7 @@ BACK_SMOOTHING = 2  # neighbour-average passes on the hidden vertices' colours
 HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampled for the hair colour ...
 FACE_ROWS = (0.55, 0.75)  # ... less what has the colour of the face's skin (these rows of the head, its middle fifth) ...
 HAIR_SHARE = 0.2  # ... when at least this share of the band is left
+HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
 
 
 @dataclass
@@ -261,8 +263,9 @@ def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.
     (``head_px``: projected head vertices) less those of the face's skin colour (the median of the head's
     :data:`FACE_ROWS`, middle fifth; a forehead under hair drawn back), their median colour
     (:func:`humanvdm_core.clothed_proxy.median_colour`) when at least :data:`HAIR_SHARE` of the band is
-    left, else the band's per-channel median (a bald head, hair of the skin's colour); None when the
-    band holds no person."""
+    left; else the same over the head above :data:`HAIR_UPPER` of its box (hands resting on the head
+    fill the band with skin); else the band's per-channel median (a bald head, hair of the skin's
+    colour); None when the band holds no person."""
     if len(head_px) == 0:
         return None
     h, w = mask.shape
@@ -285,9 +288,12 @@ def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.
     cx, half = (x0 + x1) // 2, max(1, (x1 - x0) // 5)
     face = image[fy0:fy1, cx - half:cx + half + 1][mask[fy0:fy1, cx - half:cx + half + 1] > 0.5]
     if len(face) >= 16:
-        hair = ~skin_like(pixels[None], median_colour(face))[0]
-        if hair.sum() >= max(4, HAIR_SHARE * len(pixels)):
-            return median_colour(pixels[hair])
+        upper = max(bottom, int(y_lo + HAIR_UPPER * (y_hi - y_lo)))
+        for rows in (slice(top, bottom), slice(top, upper)):
+            seen = image[rows, x0:x1 + 1][mask[rows, x0:x1 + 1] > 0.5]
+            hair = ~skin_like(seen[None], median_colour(face))[0]
+            if hair.sum() >= max(4, HAIR_SHARE * len(seen)):
+                return median_colour(seen[hair])
     return np.median(pixels, axis=0)
 
 
@@ -373,10 +379,12 @@ def reaching_forearms(coco17: np.ndarray, w2c: np.ndarray) -> list[tuple[str, fl
     return out
 
 
-def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarray | None = None) -> list[str]:
+def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarray | None = None,
+                   on_head: tuple[str, ...] = ()) -> list[str]:
     """What the photo cannot tell the stand-in, from the detections and the fitted body's COCO joints
-    (17, 3; world, Y up): hidden legs or hands, a seated pose and, with the input camera ``w2c``, a
-    forearm reaching towards or away from the camera (:func:`reaching_forearms`)."""
+    (17, 3; world, Y up): hidden legs or hands, a seated pose, the hands ``on_head`` (``"left"`` /
+    ``"right"``, placed touching it) and, with the input camera ``w2c``, any other forearm reaching
+    towards or away from the camera (:func:`reaching_forearms`)."""
     out = []
     conf = view.confidences
     hidden_legs = []
@@ -395,8 +403,12 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarr
     if np.all(angle > SEATED_THIGH_DEG):
         out.append(f"{name}: the person is seated or crouching (thighs {angle.min():.0f}-{angle.max():.0f} deg from "
                    "vertical): the seat is not in the photo's mask, so the person floats; what is under them is guessed")
+    for side in on_head:
+        out.append(f"{name}: the {side} hand is on the head (the face, an ear or the hair): placed touching it; the "
+                   "photo does not show whether it touches, and the forearm's depth follows from that guess")
     for side, angle in reaching_forearms(coco17, w2c) if w2c is not None else []:
-        if view.confidences[FOREARMS[side][1]] >= HIDDEN_CONFIDENCE:  # a hidden hand has its own warning
+        # a hidden hand has its own warning, a hand on the head the one above
+        if view.confidences[FOREARMS[side][1]] >= HIDDEN_CONFIDENCE and side not in on_head:
             out.append(f"{name}: the {side} forearm points {'towards' if angle > 0 else 'away from'} the camera "
                        f"({abs(angle):.0f} deg out of the photo's plane): how far it, and anything it holds, "
                        "stands out from the body is guessed")
@@ -439,7 +451,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     import torch
 
     from humanvdm_core.body import load_body_model
-    from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body
+    from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body, hands_on_head
     from humanvdm_core.perception.facing import estimate_facing
     from humanvdm_core.workflow.errors import ConfigError
 
@@ -477,7 +489,10 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
         facing_warning = (f"{name} shows the person in profile (shoulders turned {turn:.0f} deg from the camera): "
                           "their front and back are seen edge-on, so both are guessed")
     warnings += [facing_warning] if facing_warning else []
-    warnings += _pose_warnings(name, view, coco17, front_cam.w2c[0])
+    # the hands the fit placed on the head (FitOptions.hands_on_head): the contact fixes their arms' depth
+    on_head = tuple(side for side, (_, wrist) in FOREARMS.items() if view.world_keypoints is not None
+                    and wrist in hands_on_head(view.world_keypoints, view.confidences))
+    warnings += _pose_warnings(name, view, coco17, front_cam.w2c[0], on_head)
 
     weights = model.skinning_weights.numpy()
     head_ids = [model.joint_names.index(n) for n in HEAD_JOINTS if n in model.joint_names]
@@ -493,7 +508,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
             hair = hair_colour(view.rgba[..., :3], view.mask, px)
         clothed = build_clothed_proxy(vertices, faces, weights, list(model.joint_names), front_cam,
                                       view.rgba[..., :3], view.mask, head_colour=hair,
-                                      legs_hidden=_ankles_hidden(view.confidences), profile=turn >= PROFILE_DEG)
+                                      legs_hidden=_ankles_hidden(view.confidences), profile=turn >= PROFILE_DEG,
+                                      placed_arms=tuple(1 if side == "left" else -1 for side in on_head))
         lg.info("clothed proxy: %d vertices, %d faces; the body covers %.0f%% of the silhouette",
                 len(clothed.mesh.vertices), len(clothed.mesh.faces), 100 * clothed.body_fraction)
         if clothed.body_fraction < LOOSE_FRACTION:

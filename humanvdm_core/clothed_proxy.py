@@ -20,9 +20,12 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    and the body behind it. Likewise where an arm or a hand is the body's farthest surface (behind the
    body, hidden by it: the far arm of a person seen in profile), it stands at most :data:`ARM_REACH`
    behind the farthest surface of the body without its arms (:func:`arm_reach_limit`), not a fin the
-   arm's length deep. A hand's depth is its mean over :data:`HAND_SMOOTH` of the grid
-   (:func:`smooth_hands`): the photo does not show the fingers' depth, and the fitted fingers' relief
-   would stand out from the side as shards.
+   arm's length deep. An arm whose hand rests on the head (``placed_arms``) keeps its fitted depth where
+   the torso is behind it: the contact fixes the hand's depth, and a forearm rising to it from the
+   chest then stands as far before the chest as its length demands (before the head, where the fit's
+   elbows held out to the sides are as unsure as any, the limit holds). A hand's depth is its mean over
+   :data:`HAND_SMOOTH` of the grid (:func:`smooth_hands`): the photo does not show the fingers' depth,
+   and the fitted fingers' relief would stand out from the side as shards.
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
    feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
    (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of
@@ -248,8 +251,9 @@ def _face_mode(values: np.ndarray) -> np.ndarray:
 def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera: Cameras,
               sides: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage, the
-    part of the nearest and of the farthest surface (-1 where empty) and, from ``sides`` (V,) in
-    {-1, 0, 1}, their sides (0 where empty or without ``sides``)."""
+    part of the nearest and of the farthest surface (-1 where empty), from ``sides`` (V,) in
+    {-1, 0, 1} their sides (0 where empty or without ``sides``), and the same depths and parts of the
+    body without its arms and hands (``trunk_*``: what lies behind an arm held before the body)."""
     from humanvdm_core.render import render_views
 
     # one part (and side) per face, drawn flat: codes interpolated across a face between two parts pass
@@ -291,7 +295,8 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
             "back_side": side_map(far), "trunk_front": trunk.depth[0].astype(np.float64),
-            "trunk_back": np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)}
+            "trunk_back": np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0),
+            "trunk_front_part": part_map(trunk), "trunk_back_part": part_map(trunk_far)}
 
 
 # ----------------------------------------------------------------------------- PDE helpers
@@ -822,7 +827,8 @@ def horizontal_reach(camera: Cameras) -> np.ndarray:
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
-                        legs_hidden: bool = False, profile: bool = False) -> ClothedProxy:
+                        legs_hidden: bool = False, profile: bool = False,
+                        placed_arms: tuple[int, ...] = ()) -> ClothedProxy:
     """The clothed proxy of a person (see the module docstring).
 
     ``vertices`` (V, 3) / ``faces`` / ``skinning_weights`` (V, J) / ``joint_names``: the fitted body in
@@ -830,7 +836,9 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     ``mask`` (size, size): the input view's photo and person mask; ``head_colour``: the colour of the
     unseen side of the head (hair), None to use the head's own median colour; ``legs_hidden``: the
     photo does not show the ankles (a long dress or coat), so the fitted legs' depth is a guess; ``profile``:
-    the photo shows the person from the side, so the unseen side of the head mirrors the seen one."""
+    the photo shows the person from the side, so the unseen side of the head mirrors the seen one;
+    ``placed_arms``: the sides (+1 left, -1 right, the person's own) of arms whose depth a contact fixes (a
+    hand on the head): before (behind) the torso they keep the fitted depth, no :data:`ARM_REACH` limit."""
     size = camera.width
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
@@ -855,7 +863,10 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # arm of a person seen in profile) stands at most ARM_REACH out of its farthest surface.
     fx = float(cam_g.K[0, 0, 0])
     limbs = [PARTS.index("arms"), PARTS.index("hands")]
-    limb_front = body & np.isin(maps["front_part"], limbs)  # the fitted arms and hands as the nearest surface
+    torso = PARTS.index("torso")
+    # the fitted arms and hands as the nearest surface, less those a contact places where the torso is behind
+    limb_front = body & np.isin(maps["front_part"], limbs) & ~(
+        np.isin(maps["front_side"], placed_arms) & (maps["trunk_front_part"] == torso))
     if (maps["trunk_front"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_front"], fx)
         shift = np.where(limb_front, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
@@ -863,7 +874,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
     if (maps["trunk_back"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_back"], fx)
-        arm = body & np.isin(maps["back_part"], limbs)
+        arm = body & np.isin(maps["back_part"], limbs) & ~(
+            np.isin(maps["back_side"], placed_arms) & (maps["trunk_back_part"] == torso))
         pull = np.where(arm, np.clip(maps["back"] - ref - ARM_REACH, 0.0, None) * fade, 0.0)
         maps["back"] = np.maximum(maps["back"] - pull, maps["front"])
     add_clothing(maps, body, g)

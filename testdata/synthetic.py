@@ -122,8 +122,11 @@ WORLD_CONVENTION = ("metres; Y up; facing +Z; person's left at +X; lowest vertex
 # - seated: thighs horizontal forward (hips flexed 90 degrees), shins near vertical (knees 84
 #   degrees), forearms forward onto the thighs; no seat;
 # - hand-to-face: two-bone IK puts the right wrist 7 cm outside and 12 cm below the right eye, the
-#   palm against the cheek and jaw, the elbow down in front of the chest; the left arm hangs.
-POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated", "hand-to-face")
+#   palm against the cheek and jaw, the elbow down in front of the chest; the left arm hangs;
+# - hands-on-head: two-bone IK puts each wrist beside the top of the head (8 cm out from the eyes'
+#   middle, 9 cm above and 7 cm behind it), the hands over the crown, the elbows out to the sides.
+POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated", "hand-to-face",
+                          "hands-on-head")
 # the poses random_specs cycles through (fixed, so its subjects stay those of the recorded benchmarks)
 RANDOM_POSES: tuple[str, ...] = POSES[:6]
 
@@ -152,7 +155,7 @@ HAIR_STYLES = ("short", "long")
 DRESSES = ("none", "skirt", "long", "coat")
 DRESS_PATTERNS = ("solid", "stripes", "checks", "dots")
 GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised",  # dress poses
-                                  "hand-to-face")
+                                  "hand-to-face", "hands-on-head")
 GARMENT_TEXTURE = "garments.png"
 _PALETTE: tuple[RGB, ...] = (
     (200, 30, 40), (30, 80, 180), (240, 200, 40), (30, 140, 70), (240, 240, 235), (25, 25, 30),
@@ -449,6 +452,12 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
         reach("R", joint["eye.R"] + np.array([-0.065, -0.12, 0.0]), np.array([-0.2, -1.0, 0.8]))
         hang(1.0, "L")
         for s, side in sides:
+            leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
+    elif name == "hands-on-head":
+        # both hands resting on the crown, the elbows out to the sides
+        eyes = 0.5 * (joint["eye.L"] + joint["eye.R"])
+        for s, side in sides:
+            reach(side, eyes + np.array([s * 0.08, 0.09, -0.07]), np.array([s * 1.0, 0.0, 0.3]))
             leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
     elif name == "seated":
         for s, side in sides:

@@ -280,13 +280,18 @@ def test_body_maps_keep_a_leg_reaching_back_or_forward_under_a_camera_looking_do
     assert (low & maps["covered"]).sum() > 0.9 * low.sum()
 
 
-def _cylinder_body():
+def _cylinder_body(max_edge: float | None = None, neck: float = 0.6):
+    """A 1.6 m cylinder "body", 0.15 m in radius, "torso" below y = ``neck`` and "head" above: (vertices,
+    faces, skinning weights, joint names). Its sides are single faces from end to end (half of them
+    the torso's) unless ``max_edge`` splits them."""
     import trimesh
 
     body = trimesh.creation.cylinder(radius=0.15, height=1.6, sections=48)
     body.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # axis along Y
+    if max_edge is not None:
+        body = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(body.vertices, body.faces, max_edge))
     v = np.asarray(body.vertices, np.float64)
-    weights = np.stack([v[:, 1] < 0.6, v[:, 1] >= 0.6], axis=1).astype(np.float64)  # torso below, head above
+    weights = np.stack([v[:, 1] < neck, v[:, 1] >= neck], axis=1).astype(np.float64)  # torso below, head above
     return v, np.asarray(body.faces, np.int64), weights, ["spine01", "head"]
 
 
@@ -637,11 +642,13 @@ def _photo_of(spec, root, size: int = 256, azimuth_deg: float = 0.0):
               "of the person's silhouette lies outside the fitted body")),
     ("seated", ("photo.png: the person is seated or crouching",)),
     ("profile", ("photo.png shows the person in profile",)),
+    ("hand_to_face", ("photo.png: the right hand is on the head",)),
 ])
 def test_the_run_says_what_it_guessed(tmp_path, case, expected):
     """A gown hides the legs and reaches far beyond the body; a seated person's seat is not in the mask;
-    a person photographed from the side has front and back edge-on: each is said in a warning that
-    names the photo (in profile, not a guess of front or back)."""
+    a person photographed from the side has front and back edge-on; a palm on the cheek is placed
+    touching it: each is said in a warning that names the photo (in profile, not a guess of front or
+    back; the hand on the face, not a forearm reaching at the camera)."""
     pytest.importorskip("anny")
     pytest.importorskip("mediapipe")
     from humanvdm_core.body_prior import build_body_proxy
@@ -649,13 +656,15 @@ def test_the_run_says_what_it_guessed(tmp_path, case, expected):
 
     torch.set_num_threads(1)
     spec = {"gown": GARMENT_EXAMPLES["gown"], "seated": SubjectSpec(pose="seated", seed=5),
-            "profile": SubjectSpec(seed=3)}[case]
+            "profile": SubjectSpec(seed=3), "hand_to_face": SubjectSpec(pose="hand-to-face", seed=7)}[case]
     photo = _photo_of(spec, tmp_path, azimuth_deg=90.0 if case == "profile" else 0.0)
     proxy = build_body_proxy(photo, size=256, iterations=60)
     for text in expected:
         assert any(text in w for w in proxy.warnings), proxy.warnings
     if case == "gown":
         assert not any("seated" in w for w in proxy.warnings), proxy.warnings
+    if case == "hand_to_face":
+        assert not any("right forearm points" in w for w in proxy.warnings), proxy.warnings
     if case == "profile":
         assert not any("facing" in w or "from behind" in w for w in proxy.warnings), proxy.warnings
     else:
@@ -708,9 +717,11 @@ def test_outside_of_keeps_enclosed_holes_apart():
     assert out[0, 0] and out[29, 15] and not out[15, 15] and not out[7, 7]
 
 
-def _proxy_of_torso_with_arm(thickness: float, centre_z: float):
+def _proxy_of_torso_with_arm(thickness: float, centre_z: float, placed_arms: tuple[int, ...] = (),
+                              neck: float = 0.6):
     """The clothed proxy of a cylinder "torso" (front surface at z = 0.15, back at -0.15; the subject faces
-    +z, the camera is on +z) with a 0.6 m box "arm" along z, ``thickness`` wide, centred at ``centre_z``."""
+    +z, the camera is on +z; its "head" from y = ``neck`` up) with a 0.6 m box "arm" (the left's) along
+    z at y = 0.1, ``thickness`` wide, centred at ``centre_z``."""
     import trimesh
 
     from humanvdm_core.cameras import orbit_cameras
@@ -719,7 +730,7 @@ def _proxy_of_torso_with_arm(thickness: float, centre_z: float):
     from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
-    v, f, w, _ = _cylinder_body()
+    v, f, w, _ = _cylinder_body(max_edge=0.05, neck=neck)
     arm = trimesh.creation.box(extents=(thickness, thickness, 0.6))
     arm.apply_translation((0.0, 0.1, centre_z))
     va, fa = np.asarray(arm.vertices, np.float64), np.asarray(arm.faces, np.int64) + len(v)
@@ -732,7 +743,7 @@ def _proxy_of_torso_with_arm(thickness: float, centre_z: float):
     cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
     mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
     return build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
-                               grid=size)
+                               grid=size, placed_arms=placed_arms)
 
 
 def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
@@ -746,6 +757,21 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
     assert z.max() >= 0.15 + ARM_REACH - 0.03
     torso = proxy.front & (np.abs(proxy.mesh.vertices[:, 1] + 0.4) < 0.05)  # the torso's front well below the arm
     assert abs(float(np.median(z[torso])) - 0.15) < 0.03
+
+
+def test_an_arm_whose_hand_a_contact_places_keeps_its_fitted_depth():
+    """An arm placed by a contact (a hand on the head, ``placed_arms``) is not pulled back to ARM_REACH
+    where the torso is behind it (an elbow before the chest): the "arm" pointing at the camera keeps its
+    tip, in front and behind; before (behind) the head it is pulled back as any arm; naming the other
+    side's arms changes nothing."""
+    from humanvdm_core.clothed_proxy import ARM_REACH
+
+    for centre_z, far in ((0.15 + 0.3, 0.75), (-0.15 - 0.3, -0.75)):
+        z = _proxy_of_torso_with_arm(0.16, centre_z, placed_arms=(1,)).mesh.vertices[:, 2]
+        assert abs(float(z.max() if far > 0 else z.min()) - far) < 0.04, (z.min(), z.max())
+        for placed, neck in (((-1,), 0.6), ((1,), -0.2)):  # the other arm; the arm before the "head"
+            z = _proxy_of_torso_with_arm(0.16, centre_z, placed_arms=placed, neck=neck).mesh.vertices[:, 2]
+            assert float(np.abs(z).max()) <= 0.15 + ARM_REACH + 0.02, (placed, neck, z.min(), z.max())
 
 
 def test_an_arm_behind_the_body_stands_at_most_arm_reach_behind_it():
@@ -819,6 +845,28 @@ def test_the_hair_colour_leaves_out_a_forehead_showing_at_the_top_of_the_head():
     # all hair in the band (or a bald head: no hair left beside the skin) keeps the band's median
     image[head & (yy < 70)] = hair
     assert np.abs(hair_colour(image, mask, head_px) - hair).max() < 1e-6
+    image[head] = skin
+    assert np.abs(hair_colour(image, mask, head_px) - skin).max() < 1e-6
+
+
+def test_the_hair_colour_looks_below_hands_resting_on_the_head():
+    """Hands resting on the crown fill the top band of the head with skin: the hair showing between them
+    and the face, down to 40 % of the head, gives the colour (before: the band's median, the hands'
+    skin: a bald head from behind). A bald head, the same skin above, keeps the skin."""
+    from humanvdm_core.body_prior import hair_colour
+
+    hair, skin = np.array([0.17, 0.12, 0.1], np.float32), np.array([0.85, 0.66, 0.55], np.float32)
+    image = np.ones((200, 200, 3), np.float32)
+    mask = np.zeros((200, 200), np.float32)
+    yy, xx = np.mgrid[:200, :200]
+    head = ((xx - 100) / 40.0) ** 2 + ((yy - 100) / 55.0) ** 2 <= 1.0
+    hands = (np.abs(xx - 100) < 45) & (yy >= 30) & (yy < 62)  # palms over the crown, a little above it
+    mask[head | hands] = 1.0
+    image[head] = skin
+    image[head & (yy < 85)] = hair  # hair down to the temples
+    image[hands] = skin
+    head_px = np.stack(np.nonzero(head)[::-1], axis=1).astype(np.float32)
+    assert np.abs(hair_colour(image, mask, head_px) - hair).max() < 0.03
     image[head] = skin
     assert np.abs(hair_colour(image, mask, head_px) - skin).max() < 1e-6
 

@@ -161,6 +161,15 @@ def test_hand_to_face_puts_the_right_palm_on_the_cheek(subjects):
     assert kp(truth, "left_wrist")[1] < kp(truth, "left_hip")[1] + 0.05  # the left arm hangs
 
 
+def test_hands_on_head_rest_both_hands_on_the_crown(subjects):
+    _, truth = subjects["hands-on-head"]
+    eye_y = 0.5 * (kp(truth, "left_eye")[1] + kp(truth, "right_eye")[1])
+    for side, s in (("left", 1.0), ("right", -1.0)):
+        wrist, elbow, shoulder = (kp(truth, f"{side}_{j}") for j in ("wrist", "elbow", "shoulder"))
+        assert eye_y + 0.04 < wrist[1] < eye_y + 0.15 and 0.0 < s * wrist[0] < 0.12  # on top of the head
+        assert elbow[1] > shoulder[1] and s * (elbow[0] - shoulder[0]) > 0.08  # the elbows up and out
+
+
 def test_standing_and_a_pose_arms(subjects):
     _, stand = subjects["standing"]
     _, apose = subjects["a-pose"]

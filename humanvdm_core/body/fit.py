@@ -31,7 +31,9 @@ Contract:
     a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body.
     An arm the 2D keypoints show held out to the side is first turned into the body's frontal plane
     (:func:`frontal_arms`, ``FitOptions.frontal_arms``): the detector tilts such forearms 20-30 deg
-    towards the camera;
+    towards the camera; a wrist the 3D landmarks place on the head is first moved to the head's middle
+    depth (:func:`onto_the_head`, ``FitOptions.hands_on_head``): a hand the photo shows on the face or the
+    head touches it, where the detector often puts it 20-25 cm before the face;
   * silhouette, one-sided by default: projected vertices (a fixed subsample) must fall inside the
     mask (the mask's outside distance transform sampled bilinearly at them; ``silhouette_weight``).
     Pixels a frame does not show (``FrameObservation.unseen``: beyond the edge of a photo that cuts
@@ -145,6 +147,11 @@ ARM_STRAIGHT_DEG = 35.0
 ARM_SEEN_LENGTH = 0.4
 ARM_CONFIDENCE = 0.5
 ARMS = ((5, 7, 9), (6, 8, 10))  # COCO-17 shoulder, elbow, wrist: left, right
+# A hand on the head (see hands_on_head): the wrist's 3D landmark within HEAD_TOUCH (metres, across the
+# image plane) of the centre of the nose and the ears, all of them at least HEAD_CONFIDENCE sure.
+HEAD_TOUCH = 0.2
+HEAD_CONFIDENCE = 0.5
+WRISTS = (9, 10)  # COCO-17 left, right wrist
 # A person standing still (see standing_still): in the photo both legs' hips, knees and ankles at least
 # STANCE_CONFIDENCE sure, each thigh within STANCE_THIGH_DEG and shin within STANCE_SHIN_DEG of straight
 # down and the thigh at least STANCE_THIGH_LENGTH of the torso's length (not foreshortened: a seated or
@@ -195,6 +202,8 @@ class FitOptions:
     facing_away: bool = False
     # the detector's 3D arms held out to the side are turned into the body's frontal plane (frontal_arms)
     frontal_arms: bool = True
+    # the detector's 3D wrists on the head are moved into the head's depth: the hand touches it (onto_the_head)
+    hands_on_head: bool = True
     # a single photo of a person standing still (standing_still): knees straight, feet below the hips
     stance_weight: float = STANCE_WEIGHT
 
@@ -371,6 +380,38 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     return out.astype(np.float32)
 
 
+def hands_on_head(world: np.ndarray, confidences: np.ndarray) -> list[int]:
+    """The COCO-17 wrists (:data:`WRISTS`) that the detector's 3D landmarks ``world`` (17, 3, camera
+    axes, metres) place on the head: within :data:`HEAD_TOUCH` of the centre of the nose and the ears
+    across the image plane (x, y), the wrist, the nose and an ear at least :data:`HEAD_CONFIDENCE` sure
+    (``confidences`` (17,)). A palm on the cheek, a hand on the chin, at the ear or on top of the head."""
+    ears = [e for e in (3, 4) if confidences[e] >= HEAD_CONFIDENCE]
+    if confidences[0] < HEAD_CONFIDENCE or not ears:
+        return []
+    centre = np.asarray(world, np.float64)[[0] + ears, :2].mean(axis=0)
+    return [w for w in WRISTS if confidences[w] >= HEAD_CONFIDENCE
+            and np.linalg.norm(np.asarray(world[w][:2], np.float64) - centre) <= HEAD_TOUCH]
+
+
+def onto_the_head(world: np.ndarray, confidences: np.ndarray) -> np.ndarray:
+    """The detector's 3D landmarks ``world`` (17, 3, camera axes) with each wrist on the head
+    (:func:`hands_on_head`) moved along the view to the head's middle depth (halfway between the nose
+    and the ears); nothing else moves.
+
+    A forearm raised to the head is foreshortened in the photo, and which way it points in depth is
+    the one thing the photo does not tell: MediaPipe often takes the wrong way, putting a palm that
+    rests on the cheek 20-25 cm before the nose (synthetic hand-to-face renders), and the fitted hand
+    then stands before the face; hands resting on the crown it puts level with the face. A hand the
+    photo shows on the head is taken as touching it: at the jaw, an ear or the crown the wrist lies
+    about the head's middle."""
+    out = np.asarray(world, np.float64).copy()
+    on_head = hands_on_head(out, confidences)
+    if on_head:
+        ears = [e for e in (3, 4) if confidences[e] >= HEAD_CONFIDENCE]
+        out[on_head, 2] = 0.5 * (out[0, 2] + out[ears, 2].mean())
+    return out.astype(np.float32)
+
+
 def standing_still(keypoints: np.ndarray, confidences: np.ndarray, world: np.ndarray | None,
                    mask: np.ndarray) -> bool:
     """Whether a photo shows a person standing still on both legs: 2D ``keypoints`` (17, 2 pixels) and
@@ -471,6 +512,10 @@ class _Problem:
                                    for o in observations]).astype(np.float32)
         self.raw_world_conf = self.raw_conf * np.array([o.world_keypoints is not None for o in observations],
                                                        np.float32)[:, None]
+        if options.hands_on_head:
+            for f, o in enumerate(observations):
+                if o.world_keypoints is not None:
+                    self.raw_world[f] = onto_the_head(self.raw_world[f], o.confidences)
         if options.frontal_arms:
             ups = cams.w2c[:, :3, :3] @ np.array([0.0, 1.0, 0.0])  # the world's up in each camera's axes
             for f, o in enumerate(observations):
