@@ -2,8 +2,8 @@
 
 Subjects: ``bench_pipeline``'s three (``results/pipeline.json``: subject0 seated, subject1 arms raised,
 subject2 standing), ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_hair``, ``walking_skirt``, ``long_coat``),
-``a_pose`` (arms held out 45 deg to the side), ``hand_to_face`` (the right palm on the cheek) and ``hands_on_head``
-(both hands on the crown, elbows out), each built with
+``a_pose`` (arms held out 45 deg to the side), ``hand_to_face`` (the right palm on the cheek), ``hands_on_head``
+(both hands on the crown, elbows out) and ``hands_clasped`` (the hands together before the belly), each built with
 ``make_subject`` (512² texture) and normalised like a scan. The photo is the subject rendered at
 azimuth 0, elevation 10°, 576² over white; ``body_prior.build_body_proxy`` (what ``diffuse``'s
 body-prior backend renders its orbit from) is rendered at azimuth 0 / 90 / 180 / 270 and scored against
@@ -50,6 +50,7 @@ def specs() -> dict:
     out["a_pose"] = SubjectSpec(pose="a-pose", gender=0.3, seed=31)  # arms held out to the side, in the body's plane
     out["hand_to_face"] = SubjectSpec(pose="hand-to-face", seed=7)  # the right palm on the cheek
     out["hands_on_head"] = SubjectSpec(pose="hands-on-head", seed=11)  # both hands on the crown, elbows out
+    out["hands_clasped"] = SubjectSpec(pose="hands-clasped", seed=5)  # the hands together before the belly
     return out
 
 

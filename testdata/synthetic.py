@@ -124,9 +124,11 @@ WORLD_CONVENTION = ("metres; Y up; facing +Z; person's left at +X; lowest vertex
 # - hand-to-face: two-bone IK puts the right wrist 7 cm outside and 12 cm below the right eye, the
 #   palm against the cheek and jaw, the elbow down in front of the chest; the left arm hangs;
 # - hands-on-head: two-bone IK puts each wrist beside the top of the head (8 cm out from the eyes'
-#   middle, 9 cm above and 7 cm behind it), the hands over the crown, the elbows out to the sides.
+#   middle, 9 cm above and 7 cm behind it), the hands over the crown, the elbows out to the sides;
+# - hands-clasped: two-bone IK puts both wrists 2 cm either side of the midline, 5 cm above the
+#   pelvis joint and just before the lower belly: the hands cross there, one over the other.
 POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated", "hand-to-face",
-                          "hands-on-head")
+                          "hands-on-head", "hands-clasped")
 # the poses random_specs cycles through (fixed, so its subjects stay those of the recorded benchmarks)
 RANDOM_POSES: tuple[str, ...] = POSES[:6]
 
@@ -155,7 +157,7 @@ HAIR_STYLES = ("short", "long")
 DRESSES = ("none", "skirt", "long", "coat")
 DRESS_PATTERNS = ("solid", "stripes", "checks", "dots")
 GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised",  # dress poses
-                                  "hand-to-face", "hands-on-head")
+                                  "hand-to-face", "hands-on-head", "hands-clasped")
 GARMENT_TEXTURE = "garments.png"
 _PALETTE: tuple[RGB, ...] = (
     (200, 30, 40), (30, 80, 180), (240, 200, 40), (30, 140, 70), (240, 240, 235), (25, 25, 30),
@@ -458,6 +460,12 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
         eyes = 0.5 * (joint["eye.L"] + joint["eye.R"])
         for s, side in sides:
             reach(side, eyes + np.array([s * 0.08, 0.09, -0.07]), np.array([s * 1.0, 0.0, 0.3]))
+            leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
+    elif name == "hands-clasped":
+        # the hands held together before the lower belly, one over the other
+        for s, side in sides:
+            target = np.array([s * 0.02, joint["root"][1] + 0.05, joint["root"][2] + body_half_width * 0.9 + 0.04])
+            reach(side, target, np.array([s * 1.0, -0.5, -0.3]))
             leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
     elif name == "seated":
         for s, side in sides:

@@ -170,6 +170,15 @@ def test_hands_on_head_rest_both_hands_on_the_crown(subjects):
         assert elbow[1] > shoulder[1] and s * (elbow[0] - shoulder[0]) > 0.08  # the elbows up and out
 
 
+def test_hands_clasped_meet_before_the_lower_belly(subjects):
+    _, truth = subjects["hands-clasped"]
+    left, right = kp(truth, "left_wrist"), kp(truth, "right_wrist")
+    hips = 0.5 * (kp(truth, "left_hip") + kp(truth, "right_hip"))
+    assert np.linalg.norm(left - right) < 0.08  # together
+    assert abs(0.5 * (left[1] + right[1]) - hips[1]) < 0.12  # at the lower belly
+    assert min(left[2], right[2]) > hips[2] + 0.08  # before the body
+
+
 def test_standing_and_a_pose_arms(subjects):
     _, stand = subjects["standing"]
     _, apose = subjects["a-pose"]
