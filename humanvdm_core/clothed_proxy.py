@@ -863,10 +863,13 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # arm of a person seen in profile) stands at most ARM_REACH out of its farthest surface.
     fx = float(cam_g.K[0, 0, 0])
     limbs = [PARTS.index("arms"), PARTS.index("hands")]
-    torso = PARTS.index("torso")
-    # the fitted arms and hands as the nearest surface, less those a contact places where the torso is behind
-    limb_front = body & np.isin(maps["front_part"], limbs) & ~(
-        np.isin(maps["front_side"], placed_arms) & (maps["trunk_front_part"] == torso))
+
+    def placed(key: str) -> np.ndarray:
+        """Where the ``key`` ("front" / "back") surface is an arm a contact places, the torso behind it."""
+        return np.isin(maps[key + "_side"], placed_arms) & (maps[f"trunk_{key}_part"] == PARTS.index("torso"))
+
+    # the fitted arms and hands as the nearest surface, less those a contact places
+    limb_front = body & np.isin(maps["front_part"], limbs) & ~placed("front")
     if (maps["trunk_front"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_front"], fx)
         shift = np.where(limb_front, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
@@ -874,8 +877,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         maps["back"] = np.maximum(maps["back"] + np.where(np.isin(maps["back_part"], limbs), shift, 0.0), maps["front"])
     if (maps["trunk_back"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_back"], fx)
-        arm = body & np.isin(maps["back_part"], limbs) & ~(
-            np.isin(maps["back_side"], placed_arms) & (maps["trunk_back_part"] == torso))
+        arm = body & np.isin(maps["back_part"], limbs) & ~placed("back")
         pull = np.where(arm, np.clip(maps["back"] - ref - ARM_REACH, 0.0, None) * fade, 0.0)
         maps["back"] = np.maximum(maps["back"] - pull, maps["front"])
     add_clothing(maps, body, g)

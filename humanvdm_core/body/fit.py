@@ -380,12 +380,17 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     return out.astype(np.float32)
 
 
+def _sure_ears(confidences: np.ndarray) -> list[int]:
+    """The COCO-17 ears (3, 4) at least :data:`HEAD_CONFIDENCE` sure."""
+    return [e for e in (3, 4) if confidences[e] >= HEAD_CONFIDENCE]
+
+
 def hands_on_head(world: np.ndarray, confidences: np.ndarray) -> list[int]:
     """The COCO-17 wrists (:data:`WRISTS`) that the detector's 3D landmarks ``world`` (17, 3, camera
     axes, metres) place on the head: within :data:`HEAD_TOUCH` of the centre of the nose and the ears
     across the image plane (x, y), the wrist, the nose and an ear at least :data:`HEAD_CONFIDENCE` sure
     (``confidences`` (17,)). A palm on the cheek, a hand on the chin, at the ear or on top of the head."""
-    ears = [e for e in (3, 4) if confidences[e] >= HEAD_CONFIDENCE]
+    ears = _sure_ears(confidences)
     if confidences[0] < HEAD_CONFIDENCE or not ears:
         return []
     centre = np.asarray(world, np.float64)[[0] + ears, :2].mean(axis=0)
@@ -407,8 +412,7 @@ def onto_the_head(world: np.ndarray, confidences: np.ndarray) -> np.ndarray:
     out = np.asarray(world, np.float64).copy()
     on_head = hands_on_head(out, confidences)
     if on_head:
-        ears = [e for e in (3, 4) if confidences[e] >= HEAD_CONFIDENCE]
-        out[on_head, 2] = 0.5 * (out[0, 2] + out[ears, 2].mean())
+        out[on_head, 2] = 0.5 * (out[0, 2] + out[_sure_ears(confidences), 2].mean())
     return out.astype(np.float32)
 
 
