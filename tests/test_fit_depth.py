@@ -483,6 +483,32 @@ def test_bone_term_and_independent_3d_swaps():
     assert float(problem.bone_direction_term(rest.coco17[0])) > 0.05
 
 
+def test_onto_the_head_applies_to_a_single_photo_only():
+    """One photo: its wrist on the head is moved to the head's depth before the bone term reads it. Two
+    views: the landmarks are kept (the other view sees the depth; in an orbit's side views an arm held
+    out towards the camera lies on the head across the image plane)."""
+    pytest.importorskip("anny", reason="the 'anny' package is not installed")
+    from humanvdm_core.body.fit import FitOptions, FrameObservation, _Problem
+    from humanvdm_core.cameras import orbit_cameras
+    from testdata.synthetic import body_model
+
+    world = np.zeros((17, 3), np.float32)
+    world[0] = [0.0, -0.65, -0.2]
+    world[[3, 4]] = [[0.07, -0.66, -0.1], [-0.07, -0.66, -0.1]]
+    world[[5, 6, 11, 12]] = [[0.18, -0.5, 0.0], [-0.18, -0.5, 0.0], [0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
+    world[10] = [-0.08, -0.52, -0.45]  # the right palm on the cheek, taken 0.25 m before the nose
+    px = np.tile(np.array([[128.0, 128.0]], np.float32), (17, 1)) + np.arange(17, dtype=np.float32)[:, None]
+
+    def raw_wrist_z(views: int) -> list[float]:
+        cams = orbit_cameras(views, 256, azimuths_deg=np.arange(views) * 30.0)
+        obs = [FrameObservation(i, px, np.ones(17, np.float32), np.ones((32, 32), np.float32), [], world)
+               for i in range(views)]
+        return [float(z) for z in _Problem(body_model(), cams, obs, FitOptions()).raw_world[:, 10, 2]]
+
+    assert raw_wrist_z(1) == pytest.approx([-0.15])
+    assert raw_wrist_z(2) == pytest.approx([-0.45, -0.45])
+
+
 def test_fit_smpl_warning_summary():
     warnings = [f"frame {i:04d}: keypoints unusable (too little of the body is visible in frame {i:04d}: left hip "
                 "not visible)" for i in (3, 7, 10, 12, 15, 17, 19)]

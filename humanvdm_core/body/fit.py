@@ -31,9 +31,10 @@ Contract:
     a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body.
     An arm the 2D keypoints show held out to the side is first turned into the body's frontal plane
     (:func:`frontal_arms`, ``FitOptions.frontal_arms``): the detector tilts such forearms 20-30 deg
-    towards the camera; a wrist the 3D landmarks place on the head is first moved to the head's middle
-    depth (:func:`onto_the_head`, ``FitOptions.hands_on_head``): a hand the photo shows on the face or the
-    head touches it, where the detector often puts it 20-25 cm before the face;
+    towards the camera; in a single photo a wrist the 3D landmarks place on the head is first moved to
+    the head's middle depth (:func:`onto_the_head`, ``FitOptions.hands_on_head``): a hand the photo
+    shows on the face or the head touches it, where the detector often puts it 20-25 cm before the
+    face (with more views their depths decide);
   * silhouette, one-sided by default: projected vertices (a fixed subsample) must fall inside the
     mask (the mask's outside distance transform sampled bilinearly at them; ``silhouette_weight``).
     Pixels a frame does not show (``FrameObservation.unseen``: beyond the edge of a photo that cuts
@@ -202,7 +203,8 @@ class FitOptions:
     facing_away: bool = False
     # the detector's 3D arms held out to the side are turned into the body's frontal plane (frontal_arms)
     frontal_arms: bool = True
-    # the detector's 3D wrists on the head are moved into the head's depth: the hand touches it (onto_the_head)
+    # a single photo: the detector's 3D wrists on the head are moved into the head's depth, the hand touches
+    # it (onto_the_head)
     hands_on_head: bool = True
     # a single photo of a person standing still (standing_still): knees straight, feet below the hips
     stance_weight: float = STANCE_WEIGHT
@@ -516,7 +518,9 @@ class _Problem:
                                    for o in observations]).astype(np.float32)
         self.raw_world_conf = self.raw_conf * np.array([o.world_keypoints is not None for o in observations],
                                                        np.float32)[:, None]
-        if options.hands_on_head:
+        # a single photo only: other views see the depth (in an orbit's side views an arm held out towards
+        # the camera lies on the head across the image plane)
+        if options.hands_on_head and sum(o.has_keypoints for o in observations) == 1:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = onto_the_head(self.raw_world[f], o.confidences)
