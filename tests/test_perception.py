@@ -395,6 +395,50 @@ def test_a_person_in_a_wide_panorama_is_found_and_said_so(ryota, offline):
 
 
 @needs_mediapipe
+def test_a_cut_out_cropped_to_the_person_is_found_and_read(tmp_path, offline, monkeypatch):
+    """A photo cropped to the person's own box (no margin, hands on the head touching the top): MediaPipe
+    alone finds nobody at 512 px and misreads the pose at 384 px (keypoints 170-200 px off, knees and
+    ankles unseen); the run on the photo framed in a border finds the pose of the uncropped photo."""
+    pytest.importorskip("anny")
+    import torch
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.perception import detect
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+    from testdata.synthetic import SubjectSpec, make_subject
+
+    torch.set_num_threads(1)
+    mesh = normalize_scan(load_scan(make_subject(SubjectSpec(pose="hands-on-head", seed=11), tmp_path / "subject",
+                                                 texture_size=256)))
+    framed = detect._run_pose_framed
+    for size in (384, 512):
+        cams = orbit_cameras(1, size, 33.8, 10.0, framing_radius(1.7, 33.8, 0.85), azimuths_deg=np.array([0.0]))
+        rgba = render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba[0]
+        ys, xs = np.nonzero(rgba[..., 3] > 0.5)
+        x0, y0 = xs.min(), ys.min()
+        tight = _photo(rgba[y0:ys.max() + 1, x0:xs.max() + 1, :3], "tight.png")
+        whole = detect_person(_photo(rgba[..., :3], "whole.png"))
+        sure = whole.confidences >= 0.5
+        expected = whole.keypoints - np.array([x0, y0], np.float32)
+
+        monkeypatch.setattr(detect, "_run_pose_framed", lambda *args: None)  # MediaPipe on the photo alone
+        if size == 512:
+            with pytest.raises(InputError, match=r"no person found in tight\.png"):
+                detect_person(tight)
+        else:
+            misread = detect_person(tight)
+            assert np.abs(misread.keypoints - expected)[sure].max() > 50  # measured 200 px
+        monkeypatch.setattr(detect, "_run_pose_framed", framed)
+
+        det = detect_person(tight)
+        error = np.abs(det.keypoints - expected)[sure].max()
+        print(f"{size} px: keypoints within {error:.1f} px of the uncropped photo's")
+        assert error < 0.03 * tight.height  # measured 6.6 / 7.9 px of 328 / 437
+        assert np.all(det.confidences[sure] >= 0.5) and det.warnings == []
+
+
+@needs_mediapipe
 def test_body_cut_off(ryota, offline):
     with pytest.raises(InputError, match=r"left hip, right hip outside the photo \(cut off by the frame\)"):
         detect_person(_photo(ryota.rgb[:230], "waist.png"))  # cropped just above the waist

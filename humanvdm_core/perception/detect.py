@@ -33,6 +33,12 @@ Contract of :func:`detect_person`:
   wider than COCO's annotated hips; hands, heels, feet toes and mouth corners are not used.
 - MediaPipe runs on a copy scaled to at most :data:`WORK_SIDE` px on the long side (RGBA photos
   composited over mid-gray first); coordinates and masks are returned at the photo's resolution.
+  The person's pose runs twice (:func:`_first_pose`): on that copy, and on it framed in a mid-gray
+  border of :data:`FRAME_PAD` of its long side; the framed run is kept where the plain one finds
+  nobody or the framed one is at least :data:`FRAME_GAIN` surer (the COCO-17 landmarks' mean
+  visibility). MediaPipe misses or misreads a person whose silhouette fills the frame (a cut-out
+  cropped to the person's own box) and a figure that shows no face (a helmet); on photos with room
+  around the person the two runs agree and the plain one stays.
 - ``bbox`` is (x0, y0, x1, y1) in pixels, the box around ``mask > 0.5``.
 - Bad inputs:
   * no person: :class:`InputError` "no person found in <file>";
@@ -103,6 +109,8 @@ TRIM_MARGIN = 0.05  # GrabCut runs on the person's box widened by this share of 
 TRIM_SIDE = 768  # ... scaled to at most this long side ...
 TRIM_ITERATIONS = 4  # ... for this many iterations
 FB_MIN = 0.1  # RGB distance between the person's and the background's colours nearby that tells a cut pixel's share
+FRAME_PAD = 0.1  # the pose also runs on the photo framed in a border this wide (share of its long side) ...
+FRAME_GAIN = 0.05  # ... and that run counts where it is this much surer (mean COCO-17 visibility)
 WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
 
@@ -157,6 +165,10 @@ class _Pose:
     def torso_visible(self) -> bool:
         return bool(np.all(self.landmarks[list(_TORSO), 2] >= MIN_CONFIDENCE))
 
+    def visibility(self) -> float:
+        """The mean visibility of the COCO-17 landmarks: how sure the pose is of the body as a whole."""
+        return float(self.landmarks[list(BLAZEPOSE_TO_COCO17), 2].mean())
+
 
 def _mediapipe():
     """Import MediaPipe's legacy solutions, or explain how to install them."""
@@ -188,6 +200,32 @@ def _run_pose(pose_model, image: np.ndarray) -> _Pose | None:
     else:
         world = np.full((len(lm), 3), np.nan, np.float32)
     return _Pose(lm, seg, world)
+
+
+def _run_pose_framed(pose_model, image: np.ndarray, pad: float) -> _Pose | None:
+    """:func:`_run_pose` on ``image`` framed in a mid-gray border of ``pad`` of its long side, the result
+    in ``image``'s own pixels (landmarks shifted back, segmentation cut back)."""
+    h, w = image.shape[:2]
+    p = max(1, int(round(pad * max(h, w))))
+    found = _run_pose(pose_model, cv2.copyMakeBorder(image, p, p, p, p, cv2.BORDER_CONSTANT, value=(128, 128, 128)))
+    if found is None:
+        return None
+    landmarks = found.landmarks.copy()
+    landmarks[:, :2] -= p
+    return _Pose(landmarks, np.ascontiguousarray(found.segmentation[p:p + h, p:p + w]), found.world)
+
+
+def _first_pose(pose_model, image: np.ndarray) -> _Pose | None:
+    """The pose of the person in ``image``: of the image as it is, or of the image framed in a border
+    (:data:`FRAME_PAD`) where that finds a person the first run missed or sees the body surer by
+    :data:`FRAME_GAIN` (:meth:`_Pose.visibility`). MediaPipe misses or misreads people whose silhouette
+    fills the frame: a cut-out cropped to the person (found at 512 px, missed or misread at 384 px with
+    its knees and ankles unseen), a faceless figure."""
+    plain = _run_pose(pose_model, image)
+    framed = _run_pose_framed(pose_model, image, FRAME_PAD)
+    if framed is not None and (plain is None or framed.visibility() > plain.visibility() + FRAME_GAIN):
+        return framed
+    return plain
 
 
 def _grey_out(image: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -461,7 +499,7 @@ def _detect(photo: Photo, refuse_multiple: bool, trim: bool) -> Detection:
     with mp_pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True,
                       min_detection_confidence=0.5) as pose_model, \
             mp_selfie.SelfieSegmentation(model_selection=0) as selfie_model:
-        first = _run_pose(pose_model, work)
+        first = _first_pose(pose_model, work)
         if first is None:
             raise _NoPerson(str(no_person))
         # Everyone's silhouette, to count people: the alpha, or selfie segmentation plus the pose's mask.
