@@ -75,7 +75,7 @@ class Case:
     source: str  # "scan:<folder>" or "synthetic:<key of synthetic_specs()>"
     checks: tuple[str, ...]  # "iou", "iou:X", "warns:TEXT", "refuses:TEXT"
     yaw_deg: float = 0.0  # the subject turned by this much first (180: the photo shows its back)
-    edit: str = "none"  # none | crop_knees | crop_wrists | wide | second_person | clutter | held_object
+    edit: str = "none"  # none | crop_knees | crop_wrists | crop_tight | wide | second_person | clutter | held_object
     size: int = 0  # photo size in pixels; 0: the suite's photo size
     alpha: bool = False  # keep the render's alpha (an RGBA cut-out) instead of an opaque photo
     note: str = ""
@@ -108,6 +108,9 @@ CASES: tuple[Case, ...] = (
          edit="crop_knees", note="the floor guards the legs the photo cuts off: folded behind the thighs, 0.26"),
     Case("cropped_wrists", "cropped body (arms cut at the sides)", f"scan:{ERIC}", ("warns:cut off", "iou:0.6"),
          edit="crop_wrists", note="Eric's T-pose with both hands past the photo's sides"),
+    Case("cropped_to_person", "cut-out cropped to the person (no margin)", "synthetic:hands_on_head", ("iou",),
+         edit="crop_tight", note="an opaque photo cut to the person's own box, the hands on the head touching its "
+         "top: MediaPipe alone finds nobody in it"),
     Case("wide_4to1", "extreme aspect ratio (4:1)", f"scan:{MEI}", ("iou",), edit="wide"),
     Case("held_object", "held object (a box in the right hand)", "synthetic:standing", ("iou",), edit="held_object"),
 )
@@ -215,6 +218,9 @@ def make_photo(case: Case, mesh, work: Path, photo_size: int) -> np.ndarray:
         xs = np.nonzero(rgba[..., 3].max(axis=0) > 0.5)[0]
         inset = int(0.14 * (xs.max() - xs.min()))  # past the wrists: a T-pose's hands are the outer ~12 % each side
         return rgba[:, xs.min() + inset:xs.max() - inset, :3]
+    if case.edit == "crop_tight":
+        ys, xs = np.nonzero(rgba[..., 3] > 0.5)
+        return rgba[ys.min():ys.max() + 1, xs.min():xs.max() + 1, :3]
     if case.edit == "wide":
         canvas = np.ones((size, 4 * size, 3), np.float32)
         canvas[:, int(1.5 * size):int(2.5 * size)] = rgba[..., :3]
