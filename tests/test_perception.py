@@ -389,7 +389,7 @@ def test_a_person_in_a_wide_panorama_is_found_and_said_so(ryota, offline):
     ref[:, x0:x0 + w] = alone.mask > 0.5
     assert (fg & ref).sum() / (fg | ref).sum() > 0.9
     assert det.bbox[0] >= x0 - 1 and det.bbox[2] <= x0 + w + 1
-    assert any("fills little of the wide photo panorama.png" in m for m in det.warnings)
+    assert any("fills little of the photo panorama.png" in m for m in det.warnings)
     with pytest.raises(InputError, match=r"no person found in empty_panorama\.png"):
         detect_person(_photo(np.full((h, 5 * w, 3), 0.85, np.float32), "empty_panorama.png"))
 
@@ -436,6 +436,31 @@ def test_a_cut_out_cropped_to_the_person_is_found_and_read(tmp_path, offline, mo
         print(f"{size} px: keypoints within {error:.1f} px of the uncropped photo's")
         assert error < 0.03 * tight.height  # measured 6.6 / 7.9 px of 328 / 437
         assert np.all(det.confidences[sure] >= 0.5) and det.warnings == []
+
+
+@needs_mediapipe
+def test_a_person_standing_far_off_in_a_4_3_photo_is_found_and_said_so(ryota, offline, monkeypatch):
+    """A person a sixth of a 2048x1536 photo's height (263 px; 351 px is missed as well): MediaPipe sees
+    the whole frame shrunk and finds nobody; the windows, half the short side, find them."""
+    from humanvdm_core.perception import detect
+
+    s, x0, y0 = 0.6, 1200, 900
+    small = cv2.resize(ryota.rgb, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    canvas = np.full((1536, 2048, 3), 0.85, np.float32)
+    canvas[y0:y0 + small.shape[0], x0:x0 + small.shape[1]] = small
+    alone = detect_person(ryota)
+    windows = detect._windows
+    monkeypatch.setattr(detect, "_windows", lambda height, width: [])  # the whole frame only
+    with pytest.raises(InputError, match=r"no person found in far\.png"):
+        detect_person(_photo(canvas, "far.png"))
+    monkeypatch.setattr(detect, "_windows", windows)
+    det = detect_person(_photo(canvas, "far.png"))
+    sure = alone.confidences >= 0.5
+    error = np.abs(det.keypoints - (alone.keypoints * s + [x0, y0]))[sure].max()
+    assert error < 0.03 * small.shape[0], error  # measured 3.5 px of 307
+    assert any("fills little of the photo far.png (263 px tall)" in m for m in det.warnings), det.warnings
+    fg = det.mask > 0.5
+    assert fg[y0:y0 + small.shape[0], x0:x0 + small.shape[1]].sum() > 0.99 * fg.sum()
 
 
 @needs_mediapipe

@@ -62,11 +62,14 @@ Contract of :func:`detect_person`:
   :data:`HELD_MIN_AREA` of the mask is added to the mask, with a warning
   (:func:`held_objects`). Not with an alpha cut-out (the user's mask is the mask) nor on a busy
   background (the object cannot be told from it).
-- A wide (or tall) photo, more than :data:`WIDE_ASPECT` : 1, in which MediaPipe finds nobody (its
-  detector sees the whole frame shrunk, so a person in a panorama is too small): the search goes on
-  in square windows of the photo's short side, half overlapping; the first window where a pose is
-  found, widened to the person's silhouette, is detected as a photo of its own and the result
-  mapped back to the whole photo, with a warning that says so.
+- A photo in which MediaPipe finds nobody (its detector sees the whole frame shrunk, so a person in a
+  panorama, or one standing far off in a photo of the street, is too small for it): the search goes on
+  in square windows, half overlapping, of the photo's short side (unless the photo is square), then of
+  :data:`WINDOW_SCALES` of it (windows of at least :data:`MIN_WINDOW` px of MediaPipe's copy); of the
+  largest windows that hold a pose with its torso and the whole of its silhouette, the surest, widened
+  to the person's silhouette, is detected as a photo of its own and the result mapped back to the whole
+  photo, with a warning that says so (and the person's height in pixels). A person who fills the photo
+  is never cut up into windows.
 - Runs offline: only MediaPipe's bundled ``pose_landmark_full.tflite`` (``model_complexity=1``),
   ``pose_detection.tflite`` and ``selfie_segmentation.tflite`` are used; nothing is downloaded.
 """
@@ -111,8 +114,10 @@ TRIM_ITERATIONS = 4  # ... for this many iterations
 FB_MIN = 0.1  # RGB distance between the person's and the background's colours nearby that tells a cut pixel's share
 FRAME_PAD = 0.1  # the pose also runs on the photo framed in a border this wide (share of its long side) ...
 FRAME_GAIN = 0.05  # ... and that run counts where it is this much surer (mean COCO-17 visibility)
-WIDE_ASPECT = 1.6  # a photo this much longer than wide in which nobody is found is searched in windows
+WINDOW_SCALES = (0.5, 1.0 / 3.0)  # nobody found: windows of the short side, then of these shares of it ...
+MIN_WINDOW = 160  # ... at least this many pixels of MediaPipe's copy
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
+WINDOW_CUT = 0.02  # a window cuts its person where the silhouette covers more than this share of an inner edge
 
 _INSTALL = ("pip install --no-deps mediapipe==0.10.21 && pip install absl-py attrs flatbuffers "
             "'protobuf>=4.25.3,<5' matplotlib")
@@ -431,33 +436,56 @@ def _crop(photo: Photo, box: tuple[int, int, int, int]) -> Photo:
     return Photo(photo.rgb[y0:y1, x0:x1], alpha, photo.path, size, list(photo.notes))
 
 
+def _windows(height: int, width: int) -> list[tuple[int, int, int]]:
+    """The square search windows ``(x0, y0, side)`` of an image, in search order: of its short side
+    (when it is not square), then of :data:`WINDOW_SCALES` of it, each size half overlapping and
+    reaching the image's far edges; sizes under :data:`MIN_WINDOW` left out."""
+    short = min(height, width)
+    sides = ([short] if height != width else []) + [round(f * short) for f in WINDOW_SCALES]
+    out = []
+    for side in sides:
+        if side < MIN_WINDOW:
+            continue
+        step = max(1, side // 2)
+        for y0 in sorted({*range(0, height - side + 1, step), height - side}):
+            out.extend((x0, y0, side) for x0 in sorted({*range(0, width - side + 1, step), width - side}))
+    return out
+
+
 def _person_window(photo: Photo) -> tuple[int, int, int, int] | None:
-    """For a wide or tall photo: the box (photo pixels) around the person of the first square window,
-    along the long side, half overlapping, in which a pose is found; None when there is none."""
+    """For a photo in which nobody is found: the box (photo pixels) around the person in the windows of
+    :func:`_windows`, size by size from the largest: of the windows of one size that hold a pose with its
+    torso and the whole of its silhouette (no more than :data:`WINDOW_CUT` of an edge of the window that is
+    not the photo's covered by it), the surest (:meth:`_Pose.visibility`), widened by
+    :data:`WINDOW_MARGIN`; None when no window holds one. A person whom no window holds whole (one who
+    fills the photo) is not cut up into windows."""
     H, W = photo.height, photo.width
     work, _, _ = _work_copy(photo)
     wh, ww = work.shape[:2]
-    side = min(wh, ww)
-    span = max(wh, ww)
-    starts = sorted({*range(0, span - side + 1, max(1, side // 2)), span - side})
     mp_pose, _ = _mediapipe()
+    best: tuple[float, int, int, int, np.ndarray] | None = None
     with mp_pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True,
                       min_detection_confidence=0.5) as pose_model:
-        for start in starts:
-            x0, y0 = (start, 0) if ww >= wh else (0, start)
-            found = _run_pose(pose_model, np.ascontiguousarray(work[y0:y0 + side, x0:x0 + side]))
+        for x0, y0, side in _windows(wh, ww):
+            if best is not None and side != best[3]:
+                break  # a larger window already holds the person
+            found = _first_pose(pose_model, np.ascontiguousarray(work[y0:y0 + side, x0:x0 + side]))
             if found is None or not found.torso_visible():
                 continue
-            ys, xs = np.nonzero(found.segmentation > 0.5)
-            if xs.size == 0:
+            seg = found.segmentation > 0.5
+            inner = [(x0 > 0, seg[:, 0]), (x0 + side < ww, seg[:, -1]), (y0 > 0, seg[0]), (y0 + side < wh, seg[-1])]
+            if not seg.any() or any(edge and line.mean() > WINDOW_CUT for edge, line in inner):
                 continue
-            pad = WINDOW_MARGIN * max(np.ptp(xs), np.ptp(ys))
-            box = np.array([x0 + xs.min() - pad, y0 + ys.min() - pad, x0 + xs.max() + 1 + pad,
-                            y0 + ys.max() + 1 + pad])
-            box = box * np.array([W / ww, H / wh, W / ww, H / wh])
-            return (max(0, int(box[0])), max(0, int(box[1])), min(W, int(np.ceil(box[2]))),
-                    min(H, int(np.ceil(box[3]))))
-    return None
+            if best is None or found.visibility() > best[0]:
+                best = (found.visibility(), x0, y0, side, seg)
+    if best is None:
+        return None
+    _, x0, y0, _, seg = best
+    ys, xs = np.nonzero(seg)
+    pad = WINDOW_MARGIN * max(np.ptp(xs), np.ptp(ys))
+    box = np.array([x0 + xs.min() - pad, y0 + ys.min() - pad, x0 + xs.max() + 1 + pad, y0 + ys.max() + 1 + pad])
+    box = box * np.array([W / ww, H / wh, W / ww, H / wh])
+    return (max(0, int(box[0])), max(0, int(box[1])), min(W, int(np.ceil(box[2]))), min(H, int(np.ceil(box[3]))))
 
 
 def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, trim: bool = True) -> Detection:
@@ -468,8 +496,6 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, t
     try:
         return _detect(photo, refuse_multiple, trim)
     except _NoPerson:
-        if max(photo.height, photo.width) < WIDE_ASPECT * min(photo.height, photo.width):
-            raise
         box = _person_window(photo)
         if box is None:
             raise
@@ -482,8 +508,8 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, t
     bx0, by0, bx1, by1 = det.bbox
     det.mask, det.untrimmed, det.bbox = mask, untrimmed, (bx0 + x0, by0 + y0, bx1 + x0, by1 + y0)
     det.keypoints = (det.keypoints + np.array([x0, y0], np.float32)).astype(np.float32)
-    det.warnings.append(f"the person fills little of the wide photo {photo.name}; found in the part "
-                        f"x {x0}-{x1}, y {y0}-{y1} px (people elsewhere in it are not counted)")
+    det.warnings.append(f"the person fills little of the photo {photo.name} ({by1 - by0:.0f} px tall); found in "
+                        f"the part x {x0}-{x1}, y {y0}-{y1} px (people elsewhere in it are not counted)")
     return det
 
 
