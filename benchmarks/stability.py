@@ -75,7 +75,8 @@ class Case:
     source: str  # "scan:<folder>" or "synthetic:<key of synthetic_specs()>"
     checks: tuple[str, ...]  # "iou", "iou:X", "warns:TEXT", "refuses:TEXT"
     yaw_deg: float = 0.0  # the subject turned by this much first (180: the photo shows its back)
-    edit: str = "none"  # none | crop_knees | crop_wrists | crop_tight | wide | second_person | clutter | held_object
+    edit: str = "none"  # none | crop_knees | crop_wrists | crop_tight | far_off | wide | second_person | clutter |
+    # held_object
     size: int = 0  # photo size in pixels; 0: the suite's photo size
     alpha: bool = False  # keep the render's alpha (an RGBA cut-out) instead of an opaque photo
     note: str = ""
@@ -111,6 +112,9 @@ CASES: tuple[Case, ...] = (
     Case("cropped_to_person", "cut-out cropped to the person (no margin)", "synthetic:hands_on_head", ("iou",),
          edit="crop_tight", note="an opaque photo cut to the person's own box, the hands on the head touching its "
          "top: MediaPipe alone finds nobody in it"),
+    Case("far_off", "person far off (a sixth of a 4:3 photo's height)", f"scan:{MEI}", ("warns:fills little", "iou"),
+         edit="far_off", size=384, note="the 384 px render of Mei in a 2048x1536 photo: MediaPipe alone finds "
+         "nobody in it"),
     Case("wide_4to1", "extreme aspect ratio (4:1)", f"scan:{MEI}", ("iou",), edit="wide"),
     Case("held_object", "held object (a box in the right hand)", "synthetic:standing", ("iou",), edit="held_object"),
 )
@@ -221,6 +225,10 @@ def make_photo(case: Case, mesh, work: Path, photo_size: int) -> np.ndarray:
     if case.edit == "crop_tight":
         ys, xs = np.nonzero(rgba[..., 3] > 0.5)
         return rgba[ys.min():ys.max() + 1, xs.min():xs.max() + 1, :3]
+    if case.edit == "far_off":
+        canvas = np.ones((4 * size, 16 * size // 3, 3), np.float32)
+        canvas[2 * size:3 * size, 3 * size:4 * size] = rgba[..., :3]
+        return canvas
     if case.edit == "wide":
         canvas = np.ones((size, 4 * size, 3), np.float32)
         canvas[:, int(1.5 * size):int(2.5 * size)] = rgba[..., :3]
