@@ -11,7 +11,9 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 
 1. Input view (:func:`prepare_input_view`, SV3D-style preprocessing): the photo is loaded and the
    person detected (:func:`humanvdm_core.perception.detect_person`; :class:`InputError` when there is
-   no usable person). The photo is scaled so the person's bounding box spans ``fill`` of the frame
+   no usable person); a person lying across the photo (on their side or upside down:
+   :func:`humanvdm_core.perception.detect.upright_turns`, a photo whose orientation was lost) is stood
+   upright by turning the photo in quarter turns, with a warning. The photo is scaled so the person's bounding box spans ``fill`` of the frame
    height (or 0.95 of its width if that is smaller), the box centre is moved to the frame centre,
    and the result is composited over ``background`` through the person mask: a ``size``² RGBA image
    (A = the mask) plus the keypoints in its pixels, and what lies past an edge of the photo that cuts
@@ -187,9 +189,19 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
                        background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> InputView:
     """Load and detect the person, then crop/scale/centre/composite (contract step 1)."""
     from humanvdm_core.perception import detect_person, load_photo
+    from humanvdm_core.perception.detect import upright_turns
+    from humanvdm_core.perception.image import turned
 
     photo = load_photo(resolve_photo(photo_path))
     det = detect_person(photo)
+    turns = upright_turns(det)
+    if turns:  # the person lies across the photo: stand them up (a photo whose orientation tag was lost)
+        photo = turned(photo, turns)
+        det = detect_person(photo)
+        seen, how = {1: ("on their side, the head to the right", "90 deg counter-clockwise"), 2: ("upside down", "180 deg"),
+                     3: ("on their side, the head to the left", "90 deg clockwise")}[turns]
+        det.warnings.insert(0, f"{photo.name} shows the person {seen}: the photo is turned {how} so they stand "
+                               "upright (its orientation was lost?); someone who really lies down is built standing")
     x0, y0, x1, y1 = det.bbox
     scale = min(fill * size / max(y1 - y0, 1.0), MAX_WIDTH_FILL * size / max(x1 - x0, 1.0))
     rgb = photo.rgb

@@ -162,6 +162,27 @@ def test_stage_writes_the_orbit_and_is_deterministic(photo, tmp_path):
     assert np.allclose(proxy["skin_weights"].sum(axis=1), 1.0, atol=1e-5)
 
 
+@pytest.mark.parametrize("turn", [1, 2, 3])
+def test_a_photo_turned_on_its_side_or_upside_down_is_stood_upright_and_said_so(photo, tmp_path, turn):
+    """A photo whose orientation was lost (the synthetic A-pose turned by quarter turns): the input view
+    is the upright photo's, and a warning says how the photo was turned."""
+    import cv2
+
+    from humanvdm_core.body_prior import prepare_input_view
+
+    upright = prepare_input_view(photo, SIZE)
+    path = tmp_path / "turned.png"
+    cv2.imwrite(str(path), np.ascontiguousarray(np.rot90(cv2.imread(str(photo)), turn)))
+    view = prepare_input_view(path, SIZE)
+    assert _iou(view.mask, upright.mask) > 0.97
+    sure = upright.confidences >= 0.5
+    assert np.abs(view.keypoints - upright.keypoints)[sure].max() < 0.02 * SIZE
+    how = {1: "90 deg clockwise", 2: "180 deg", 3: "90 deg counter-clockwise"}[turn]
+    assert any(w.startswith("turned.png shows the person") and f"turned {how} so they stand upright" in w
+               for w in view.warnings), view.warnings
+    assert not any("so they stand upright" in w for w in upright.warnings)
+
+
 def test_blank_photo_is_refused(tmp_path):
     from humanvdm_core.io import write_png
 

@@ -114,6 +114,7 @@ TRIM_ITERATIONS = 4  # ... for this many iterations
 FB_MIN = 0.1  # RGB distance between the person's and the background's colours nearby that tells a cut pixel's share
 FRAME_PAD = 0.1  # the pose also runs on the photo framed in a border this wide (share of its long side) ...
 FRAME_GAIN = 0.05  # ... and that run counts where it is this much surer (mean COCO-17 visibility)
+UPRIGHT_TOLERANCE = 30.0  # degrees from a quarter turn within which a person lying across the photo counts
 WINDOW_SCALES = (0.5, 1.0 / 3.0)  # nobody found: windows of the short side, then of these shares of it ...
 MIN_WINDOW = 160  # ... at least this many pixels of MediaPipe's copy
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
@@ -486,6 +487,26 @@ def _person_window(photo: Photo) -> tuple[int, int, int, int] | None:
     box = np.array([x0 + xs.min() - pad, y0 + ys.min() - pad, x0 + xs.max() + 1 + pad, y0 + ys.max() + 1 + pad])
     box = box * np.array([W / ww, H / wh, W / ww, H / wh])
     return (max(0, int(box[0])), max(0, int(box[1])), min(W, int(np.ceil(box[2]))), min(H, int(np.ceil(box[3]))))
+
+
+def upright_turns(det: Detection) -> int:
+    """The quarter turns counter-clockwise (``np.rot90``'s ``k``, 0..3) that stand the detected person
+    upright in the photo: the line from their feet (the sure ankles, else knees, else hips) to their
+    head (the sure nose, eyes and ears) lies within :data:`UPRIGHT_TOLERANCE` degrees of the photo's
+    right (1), its bottom (2) or its left (3); 0 when it points up, lies in between, or a part is not
+    sure (:data:`MIN_CONFIDENCE`). A phone photo whose orientation tag was lost shows its person on
+    their side."""
+    sure = det.confidences >= MIN_CONFIDENCE
+    head = [j for j in (0, 1, 2, 3, 4) if sure[j]]
+    feet = next(([a, b] for a, b in ((15, 16), (13, 14), (11, 12)) if sure[a] and sure[b]), None)
+    if not head or feet is None:
+        return 0
+    v = det.keypoints[head].mean(axis=0) - det.keypoints[feet].mean(axis=0)
+    angle = float(np.degrees(np.arctan2(v[0], -v[1])))  # 0: head up, 90: head to the right
+    k = int(round(angle / 90.0))
+    if k % 4 == 0 or abs(angle - 90.0 * k) > UPRIGHT_TOLERANCE:
+        return 0
+    return k % 4
 
 
 def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, trim: bool = True) -> Detection:

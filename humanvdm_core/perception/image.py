@@ -71,6 +71,18 @@ class Photo:
         return self.path.name
 
 
+def turned(photo: Photo, quarter_turns: int) -> Photo:
+    """``photo`` turned by ``quarter_turns`` quarters counter-clockwise (``np.rot90``'s ``k``): its
+    pixels, alpha and original size; the same file name."""
+    k = quarter_turns % 4
+    if k == 0:
+        return photo
+    alpha = None if photo.alpha is None else np.ascontiguousarray(np.rot90(photo.alpha, k))
+    w, h = photo.original_size
+    return Photo(np.ascontiguousarray(np.rot90(photo.rgb, k)), alpha, photo.path,
+                 (h, w) if k % 2 else (w, h), list(photo.notes))
+
+
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """The sRGB transfer function (IEC 61966-2-1) of linear values, clipped to [0, 1]."""
     x = np.clip(linear, 0.0, 1.0)
