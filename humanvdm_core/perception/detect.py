@@ -225,7 +225,7 @@ def _first_pose(pose_model, image: np.ndarray) -> _Pose | None:
     """The pose of the person in ``image``: of the image as it is, or of the image framed in a border
     (:data:`FRAME_PAD`) where that finds a person the first run missed or sees the body surer by
     :data:`FRAME_GAIN` (:meth:`_Pose.visibility`). MediaPipe misses or misreads people whose silhouette
-    fills the frame: a cut-out cropped to the person (found at 512 px, missed or misread at 384 px with
+    fills the frame: a cut-out cropped to the person (missed at 512 and 768 px, misread at 384 px with
     its knees and ankles unseen), a faceless figure."""
     plain = _run_pose(pose_model, image)
     framed = _run_pose_framed(pose_model, image, FRAME_PAD)
