@@ -75,8 +75,8 @@ class Case:
     source: str  # "scan:<folder>" or "synthetic:<key of synthetic_specs()>"
     checks: tuple[str, ...]  # "iou", "iou:X", "warns:TEXT", "refuses:TEXT"
     yaw_deg: float = 0.0  # the subject turned by this much first (180: the photo shows its back)
-    edit: str = "none"  # none | crop_knees | crop_wrists | crop_tight | far_off | wide | second_person | clutter |
-    # held_object
+    # none | crop_knees | crop_wrists | crop_tight | far_off | wide | second_person | clutter | held_object
+    edit: str = "none"
     size: int = 0  # photo size in pixels; 0: the suite's photo size
     alpha: bool = False  # keep the render's alpha (an RGBA cut-out) instead of an opaque photo
     note: str = ""

@@ -228,6 +228,8 @@ def _first_pose(pose_model, image: np.ndarray) -> _Pose | None:
     fills the frame: a cut-out cropped to the person (missed at 512 and 768 px, misread at 384 px with
     its knees and ankles unseen), a faceless figure."""
     plain = _run_pose(pose_model, image)
+    if plain is not None and plain.visibility() + FRAME_GAIN >= 1.0:
+        return plain  # no run can be surer by FRAME_GAIN (visibilities are at most 1)
     framed = _run_pose_framed(pose_model, image, FRAME_PAD)
     if framed is not None and (plain is None or framed.visibility() > plain.visibility() + FRAME_GAIN):
         return framed
