@@ -4,10 +4,10 @@ Per textured scan in ``../shared/fixtures/scans/`` (RenderPeople Mei and Eric, t
 skipped with a message when that folder is absent):
 
 1. the scan (``load_scan`` + ``normalize_scan``, turned to face +Z; ``--turn DEG`` turns it further,
-   90 for a photo in profile) is rendered at azimuth 0,
-   elevation 10 deg, at the orbit framing radius (``framing_radius()``), ``--photo-size``² over
-   white; that PNG (RGBA, RGB already over white; ``--opaque`` drops the alpha) is the *photo*,
-   the only thing the pipeline sees;
+   90 for a photo in profile) is rendered at azimuth 0, elevation 10 deg (``--photo-elevation``: 30
+   for a photo taken from above), at the orbit framing radius (``framing_radius()``),
+   ``--photo-size``² over white; that PNG (RGBA, RGB already over white; ``--opaque`` drops the
+   alpha) is the *photo*, the only thing the pipeline sees;
 2. ``humanvdm run photo.png --store <work>/store --no-progress`` runs the default pipeline with the
    default presets (``--set`` passes overrides through); per-stage wall time and peak memory come
    from the run's lockfile, the total wall time from the clock;
@@ -177,7 +177,7 @@ def run_scan(folder: Path, work: Path, args) -> dict:
             return {"scan": name, "error": f"--skip-pipeline: no earlier run of {name} in {work}"}
         run = json.loads(record.read_text())
     else:
-        photo_cam = orbit_cameras(1, args.photo_size, elevation_deg=ELEVATION, radius=radius,
+        photo_cam = orbit_cameras(1, args.photo_size, elevation_deg=args.photo_elevation, radius=radius,
                                   azimuths_deg=np.array([0.0]))
         rgba = render_views(mesh, photo_cam, WHITE).rgba[0]
         write_png(photo, rgba[..., :3] if args.opaque else rgba)
@@ -286,7 +286,7 @@ def save(results: dict, args) -> Path:
     doc = {"views": {v: {"azimuth_deg": az} for v, az in VIEWS.items()}, "view_order": list(VIEWS),
            "left_is": LEFT_IS, "elevation_deg": ELEVATION, "photo_size": args.photo_size,
            "photo_alpha": not args.opaque, "eval_size": args.eval_size, "reframed": not args.no_reframe,
-           "turn_deg": args.turn,
+           "turn_deg": args.turn, "photo_elevation_deg": args.photo_elevation,
            "orbit_frame_rule": "nearest azimuth on the circle, lower azimuth on a tie; scored against the scan "
                                "rendered at that frame's own camera",
            "overrides": args.set or [], "label": args.label, "work": str(args.work),
@@ -319,6 +319,8 @@ def main() -> int:
     parser.add_argument("--photo-size", type=int, default=768)
     parser.add_argument("--eval-size", type=int, default=512)
     parser.add_argument("--opaque", action="store_true", help="write the photo without alpha (RGB over white)")
+    parser.add_argument("--photo-elevation", type=float, default=ELEVATION,
+                        help="the photo's camera elevation in degrees (30: a photo taken from above)")
     parser.add_argument("--turn", type=float, default=0.0,
                         help="turn each scan by this many degrees about the vertical before the photo "
                              "(90: a profile; the views are then relative to the photo, not the scan's front)")

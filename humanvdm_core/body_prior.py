@@ -21,9 +21,11 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    silhouette says nothing there. ``fill`` is the orbit's framing: a subject
    :data:`SUBJECT_HEIGHT` tall at the origin spans ``fill`` of the frame at the orbit radius
    (:func:`humanvdm_core.scans.framing_radius`).
-2. Cameras: ``orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(...))`` (the
+2. Cameras: ``orbit_cameras(num_frames, size, FOV_DEG, elevation, framing_radius(...))`` (the
    SV3D_p orbit; the last frame, azimuth 0, is the input view); ``extra["background"]`` and
-   ``extra["fill"]`` are set.
+   ``extra["fill"]`` are set. ``elevation`` is ``elevation_deg``, raised for a photo taken from above
+   (``raise_from_above``, :func:`orbit_elevation`: MediaPipe's 3D body, torso and legs, leaning towards
+   the camera further than people photographed from ``elevation_deg`` show it), with a warning.
 3. Facing (:func:`humanvdm_core.perception.facing.estimate_facing`: a face found, the left/right
    order of shoulders and hips, MediaPipe's 3D nose vs ears): a photo taken from behind is built
    facing away from the camera and says so in a warning; a doubtful case is assumed to face the
@@ -94,6 +96,10 @@ HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampl
 FACE_ROWS = (0.55, 0.75)  # ... less what has the colour of the face's skin (these rows of the head, its middle fifth) ...
 HAIR_SHARE = 0.2  # ... when at least this share of the band is left
 HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
+FROM_ABOVE_TILT_DEG = 20.0  # the detector's 3D body tilting further towards the camera: a photo from above ...
+RAISE_PER_TILT = 2.5  # ... raises the orbit by this many degrees per degree of excess tilt ...
+MAX_RAISE_DEG = 20.0  # ... and by at most this, where the legs are foreshortened at least this much as the
+LEGS_FORESHORTENED = 0.95  # torso (foreshortening()): a bow towards the camera foreshortens the torso instead
 
 
 @dataclass
@@ -435,6 +441,73 @@ def shoulder_turn_deg(coco17: np.ndarray, w2c: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(abs(line[2]), abs(line[0]))))
 
 
+def lean_deg(world: np.ndarray | None, confidences: np.ndarray, lower: list[int], upper: list[int]) -> float | None:
+    """Degrees the detector's 3D segment from the centre of the COCO-17 joints ``lower`` to the centre of
+    ``upper`` (in ``world`` (17, 3), metres, camera axes: y down, z away from the camera) leans towards the
+    camera from the image's up, in the plane of the image's vertical and the view; None without 3D
+    landmarks or with one of those joints not sure (:data:`MIN_CONFIDENCE` in ``confidences``)."""
+    if world is None or float(np.min(confidences[lower + upper])) < MIN_CONFIDENCE:
+        return None
+    segment = np.asarray(world, np.float64)[upper].mean(axis=0) - np.asarray(world, np.float64)[lower].mean(axis=0)
+    return float(np.degrees(np.arctan2(-segment[2], -segment[1])))
+
+
+def body_tilt_deg(world: np.ndarray | None, confidences: np.ndarray) -> float | None:
+    """How far the whole detected body leans towards the camera: the smaller of the torso's lean (hip
+    centre -> shoulder centre) and the whole body's (ankle centre -> shoulder centre), :func:`lean_deg`.
+    A camera above the person tilts both; a person leaning or bowing forward tilts the torso, and a
+    seated one's legs point at the camera (the whole body's lean falls), so neither reads as a camera
+    above. None without 3D landmarks or with a shoulder, hip or ankle not sure."""
+    torso = lean_deg(world, confidences, [11, 12], [5, 6])
+    body = lean_deg(world, confidences, [15, 16], [5, 6])
+    return None if torso is None or body is None else min(torso, body)
+
+
+def foreshortening(view: InputView) -> float | None:
+    """How much more the photo foreshortens the legs than the torso: the 2D keypoints' torso (hip centre
+    -> shoulder centre) over legs (hip centre -> ankle centre), divided by the same ratio of the
+    detector's 3D landmarks. About 1 for a person standing square to the camera, above 1 seen from
+    above (the legs lie further below the camera), below 1 for a torso bowing towards it; None without
+    3D landmarks or with a shoulder, hip or ankle not sure (:data:`MIN_CONFIDENCE`)."""
+    world, kp = view.world_keypoints, np.asarray(view.keypoints, np.float64)
+    if world is None or float(np.min(view.confidences[[5, 6, 11, 12, 15, 16]])) < MIN_CONFIDENCE:
+        return None
+    world = np.asarray(world, np.float64)
+
+    def ratio(p: np.ndarray) -> float:
+        hips = p[[11, 12]].mean(axis=0)
+        legs = float(np.linalg.norm(hips - p[[15, 16]].mean(axis=0)))
+        return float(np.linalg.norm(p[[5, 6]].mean(axis=0) - hips)) / max(legs, 1e-9)
+
+    return ratio(kp) / max(ratio(world), 1e-9)
+
+
+def orbit_elevation(view: InputView, elevation_deg: float) -> tuple[float, float | None]:
+    """The elevation (degrees) to build the orbit at, and the body tilt that raised it (None: not raised).
+
+    A photo taken from above shows an upright person leaning towards the camera. MediaPipe's 3D body
+    (:func:`body_tilt_deg`) tilts 3-18 deg towards the camera on renders of five synthetic subjects
+    (standing, walking, an A-pose, hands on the hips, a hand on the face) and the two fixture scans
+    photographed from 10 deg above, 11-22 from 20 deg, 16-30 from 30 deg and 15-38 from 40 deg, and
+    -17 to 17 on the other photos of the benchmarks and the fixtures (from 10 deg or level): about half
+    the elevation, 10 deg apart between subjects. Built at ``elevation_deg`` (10), the scans
+    photographed from 30 deg came out bowing with their legs swept behind them (side IoU 0.28 / 0.44);
+    built at 20 deg, 0.59 / 0.70. The wrong way costs as much:
+    their photos from 10 deg built at 20 fall from 0.83 / 0.72 to 0.58 / 0.47. So only a tilt beyond
+    :data:`FROM_ABOVE_TILT_DEG`, above every photo from 10 deg measured, raises the orbit, by
+    :data:`RAISE_PER_TILT` degrees per degree beyond it, at most :data:`MAX_RAISE_DEG`, where the photo
+    also foreshortens the legs at least as much as the torso (:func:`foreshortening`: a bow towards the
+    camera foreshortens the torso instead). A person who really leans towards the camera as a whole is
+    stood upright too."""
+    tilt = body_tilt_deg(view.world_keypoints, view.confidences)
+    if tilt is None or tilt <= FROM_ABOVE_TILT_DEG:
+        return float(elevation_deg), None
+    legs = foreshortening(view)
+    if legs is None or legs < LEGS_FORESHORTENED:  # a bow: nothing tells it from above
+        return float(elevation_deg), None
+    return float(elevation_deg) + min(RAISE_PER_TILT * (tilt - FROM_ABOVE_TILT_DEG), MAX_RAISE_DEG), tilt
+
+
 def centring_transform(points: np.ndarray, camera_c2w: np.ndarray) -> np.ndarray:
     """4x4 scaling about the camera centre that moves the middle of ``points``' (N, 3) bounding box onto
     the vertical axis through the orbit centre (the world origin), along the camera's horizontal
@@ -458,7 +531,7 @@ def centring_transform(points: np.ndarray, camera_c2w: np.ndarray) -> np.ndarray
 def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
                      background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
                      fill: float = DEFAULT_FILL, seed: int = 0, geometry: str = "clothed",
-                     logger: logging.Logger | None = None) -> BodyProxy:
+                     raise_from_above: bool = True, logger: logging.Logger | None = None) -> BodyProxy:
     """Steps 1-6 of the contract: the input view, the orbit, the fitted body and the coloured, centred proxy."""
     import torch
 
@@ -472,11 +545,17 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     lg = logger or log
     name = resolve_photo(photo_path).name
     view = prepare_input_view(photo_path, size, fill, background)
-    cameras = orbit_cameras(num_frames, size, FOV_DEG, elevation_deg, framing_radius(SUBJECT_HEIGHT, FOV_DEG, fill))
+    warnings = list(view.warnings)
+    elevation, tilt = orbit_elevation(view, elevation_deg) if raise_from_above else (float(elevation_deg), None)
+    if tilt is not None:
+        warnings.append(f"{name} looks taken from above (the body's 3D landmarks lean {tilt:.0f} deg towards the "
+                        f"camera): the orbit is raised to {elevation:.0f} deg elevation (from {elevation_deg:.0f}) so "
+                        "the person stands upright; if they lean or bow towards the camera instead, set "
+                        "diffuse.raise_from_above=false")
+    cameras = orbit_cameras(num_frames, size, FOV_DEG, elevation, framing_radius(SUBJECT_HEIGHT, FOV_DEG, fill))
     cameras.extra.update({"background": np.asarray(background, np.float64), "fill": np.float64(fill)})
     front = int(np.argmin(np.abs((cameras.azimuth_deg + 180.0) % 360.0 - 180.0)))
     front_cam = cameras.subset([front])
-    warnings = list(view.warnings)
 
     facing = estimate_facing(view.rgba[..., :3], view.keypoints, view.confidences, view.world_keypoints)
     facing_warning = None
@@ -546,9 +625,9 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
 
 def synthesize_orbit(photo_path: str | Path, num_frames: int = 21, size: int = 576, elevation_deg: float = 10.0,
                      background: tuple[float, float, float] = (1.0, 1.0, 1.0), iterations: int = 150,
-                     fill: float = DEFAULT_FILL, seed: int = 0,
+                     fill: float = DEFAULT_FILL, seed: int = 0, raise_from_above: bool = True,
                      logger: logging.Logger | None = None) -> tuple[np.ndarray, Cameras]:
     """A photo -> (frames (N, size, size, 4) float32, cameras); see the module docstring."""
     proxy = build_body_proxy(photo_path, num_frames, size, elevation_deg, background, iterations, fill, seed,
-                             logger=logger)
+                             raise_from_above=raise_from_above, logger=logger)
     return proxy.orbit_frames(), proxy.cameras

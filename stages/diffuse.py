@@ -7,7 +7,8 @@ Output ``orbit``: a frame set (:mod:`humanvdm_core.frames`)::
 
     frames/NNNN.exr    RGBA half: RGB (sRGB values) over the background colour, A = the person's coverage
     cameras.npz        the SV3D_p orbit cameras (``num_frames``, ``resolution``², 33.8 deg vertical FOV,
-                       ``elevation_deg``, radius framing a 1.7-unit subject at ``fill`` of the frame);
+                       ``elevation_deg`` -- body-prior: raised for a photo taken from above --, radius
+                       framing a 1.7-unit subject at ``fill`` of the frame);
                        extra: background (3,), fill
     proxy.npz          body-prior with ``geometry: clothed`` only: the clothed proxy the orbit was rendered
                        from (:class:`humanvdm_core.clothed_proxy.ClothedProxy`: vertices and faces in the
@@ -57,10 +58,15 @@ SPEC = StageSpec(
     params={
         "num_frames": Param(21, "frames on the orbit; the last is azimuth 0 (the input view)"),
         "resolution": Param(576, "frame width and height in pixels"),
-        "elevation_deg": Param(10.0, "camera elevation in degrees"),
+        "elevation_deg": Param(10.0, "camera elevation in degrees (body-prior: raised for a photo taken from "
+                                     "above, see raise_from_above)"),
         "fill": Param(0.85, "fraction of the frame height the person spans (the orbit framing)"),
         "fit_iterations": Param(150, "body-prior: optimiser steps of the single-view body fit",
                                 backend="body-prior"),
+        "raise_from_above": Param(True, "body-prior: a photo taken from above (MediaPipe's 3D torso and legs leaning "
+                                        "towards the camera) raises the orbit above elevation_deg so the person "
+                                        "stands upright",
+                                  backend="body-prior"),
         "geometry": Param("clothed", "body-prior: render the orbit from the clothed proxy (the person's whole "
                                      "silhouette given depth) or from the naked fitted body (the ablation)",
                           choices=("clothed", "body"), backend="body-prior"),
@@ -125,7 +131,7 @@ def run(ctx: StageContext) -> None:
     proxy = build_body_proxy(ctx.inputs["photo"], num_frames=p["num_frames"], size=p["resolution"],
                              elevation_deg=p["elevation_deg"], background=BACKGROUND,
                              iterations=p["fit_iterations"], fill=p["fill"], seed=p["seed"],
-                             geometry=p["geometry"], logger=ctx.log)
+                             geometry=p["geometry"], raise_from_above=p["raise_from_above"], logger=ctx.log)
     for warning in proxy.warnings:
         ctx.log.warning("%s", warning)
     ctx.progress(1, 2, "steps", "render and write the orbit")

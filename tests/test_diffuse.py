@@ -368,3 +368,84 @@ def test_a_photo_cut_off_at_the_thighs_keeps_the_legs_it_does_not_show_hanging(t
     depth = float(np.ptp(v[:, 2]) / np.ptp(v[:, 1]))
     print(f"knee bends {bends[0]:.0f} / {bends[1]:.0f} deg, proxy depth {depth:.2f} of its height")
     assert max(bends) < 20.0 and depth < 0.5
+
+
+def _upright_errors(coco17: np.ndarray) -> tuple[float, float]:
+    """The fitted body's torso lean from vertical (degrees) and how far its ankles' centre lies in front
+    of or behind its hips' along the view (+Z), as a fraction of the hip height."""
+    hips, ankles = coco17[[11, 12]].mean(0), coco17[[15, 16]].mean(0)
+    torso = coco17[[5, 6]].mean(0) - hips
+    lean = float(np.degrees(np.arctan2(abs(torso[2]), torso[1])))
+    return lean, abs(float(ankles[2] - hips[2])) / float(hips[1] - ankles[1])
+
+
+def test_a_photo_taken_from_above_raises_the_orbit_so_the_person_stands_upright(tmp_path):
+    """A standing subject photographed from 35 deg above: MediaPipe's 3D torso leans towards the camera
+    further than from 10 deg, so the orbit is raised (with a warning naming the photo) and the fitted
+    body stands upright in its world; built at the default 10 deg it leans and its feet trail far from
+    below its hips. The same subject from 10 deg above is not raised."""
+    torch.set_num_threads(1)
+    from humanvdm_core.body_prior import build_body_proxy
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+    from testdata.synthetic import SubjectSpec, make_subject
+
+    mesh = normalize_scan(load_scan(make_subject(SubjectSpec(pose="standing", seed=1), tmp_path / "s",
+                                                 texture_size=256)))
+    photos = {}
+    for elevation in (10.0, 35.0):
+        cam = orbit_cameras(1, 512, 33.8, elevation, framing_radius(), azimuths_deg=np.array([0.0]))
+        photos[elevation] = tmp_path / f"from_{elevation:.0f}.png"
+        write_png(photos[elevation], render_views(mesh, cam, (1.0, 1.0, 1.0)).rgba[0][..., :3])
+
+    level = build_body_proxy(photos[10.0], size=SIZE)
+    assert float(level.cameras.elevation_deg[0]) == 10.0
+    assert not any("from above" in w for w in level.warnings), level.warnings
+
+    above = build_body_proxy(photos[35.0], size=SIZE)
+    raised = float(above.cameras.elevation_deg[0])
+    assert raised >= 20.0, raised
+    assert any(w.startswith("from_35.png looks taken from above") and f"raised to {raised:.0f} deg" in w
+               for w in above.warnings), above.warnings
+    lean, trail = _upright_errors(above.coco17)
+    flat = build_body_proxy(photos[35.0], size=SIZE, raise_from_above=False)
+    assert float(flat.cameras.elevation_deg[0]) == 10.0
+    flat_lean, flat_trail = _upright_errors(flat.coco17)
+    print(f"raised to {raised:.1f} deg: lean {lean:.1f} deg, trail {trail:.3f}; at 10 deg: lean {flat_lean:.1f}, "
+          f"trail {flat_trail:.3f}")
+    assert lean < 8.0 and trail < 0.15, (lean, trail)
+    assert flat_lean > lean + 5.0 or flat_trail > trail + 0.1, (flat_lean, flat_trail, lean, trail)
+
+
+def test_a_bow_or_a_lean_towards_the_camera_does_not_raise_the_orbit():
+    """A whole body tilted 39 deg towards the camera raises the orbit when the photo foreshortens the legs
+    at least as much as the torso (a camera above); not when it foreshortens the torso (a bow towards the
+    camera), nor when only the torso leans (the legs upright), nor when the ankles are not seen."""
+    from types import SimpleNamespace
+
+    from humanvdm_core.body_prior import MAX_RAISE_DEG, orbit_elevation
+
+    upright = np.zeros((17, 3))
+    upright[[11, 12], 0], upright[[5, 6], 0], upright[[15, 16], 0] = [0.1, -0.1], [0.18, -0.18], [0.1, -0.1]
+    upright[[5, 6], 1], upright[[15, 16], 1] = -0.5, 0.8  # y down: shoulders above the hips, ankles below
+    tilt = np.radians(39.0)  # towards the camera (z away from it): a point above the hips comes nearer
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(tilt), -np.sin(tilt)], [0.0, np.sin(tilt), np.cos(tilt)]])
+    tilted = upright @ turn.T
+    torso_only = upright.copy()
+    torso_only[[5, 6]] = tilted[[5, 6]]
+    conf = np.ones(17)
+
+    def view(world: np.ndarray, torso_px: float, legs_px: float, confidences=conf):
+        kp = np.zeros((17, 2))
+        kp[[5, 6], 1], kp[[15, 16], 1] = -torso_px, legs_px
+        return SimpleNamespace(world_keypoints=world, keypoints=kp, confidences=confidences)
+
+    raised, seen = orbit_elevation(view(tilted, 50.0, 70.0), 10.0)  # the legs foreshortened as the torso
+    assert raised == 10.0 + MAX_RAISE_DEG and round(seen) == 39
+    assert orbit_elevation(view(tilted, 30.0, 80.0), 10.0) == (10.0, None)  # the torso foreshortened: a bow
+    assert orbit_elevation(view(torso_only, 50.0, 70.0), 10.0) == (10.0, None)  # a lean of the torso alone
+    hidden = conf.copy()
+    hidden[[15, 16]] = 0.2
+    assert orbit_elevation(view(tilted, 50.0, 70.0, hidden), 10.0) == (10.0, None)
