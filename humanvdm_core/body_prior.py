@@ -96,7 +96,9 @@ HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampl
 FACE_ROWS = (0.55, 0.75)  # ... less what has the colour of the face's skin (these rows of the head, its middle fifth) ...
 HAIR_SHARE = 0.2  # ... when at least this share of the band is left
 HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
-FROM_ABOVE_TILT_DEG = 20.0  # the detector's 3D body tilting further towards the camera: a photo from above ...
+FROM_ABOVE_TILT_DEG = 20.0  # the detector's 3D body tilting further towards the camera (SEATED_TILT_DEG seated, its
+SEATED_TILT_DEG = 12.0  # thighs leaning back SEATED_THIGHS_DEG or more): a photo from above ...
+SEATED_THIGHS_DEG = 30.0
 RAISE_PER_TILT = 2.5  # ... raises the orbit by this many degrees per degree of excess tilt ...
 MAX_RAISE_DEG = 20.0  # ... and by at most this, where the legs are foreshortened at least this much as the
 LEGS_FORESHORTENED = 0.95  # torso (foreshortening()): a bow towards the camera foreshortens the torso instead
@@ -452,15 +454,22 @@ def lean_deg(world: np.ndarray | None, confidences: np.ndarray, lower: list[int]
     return float(np.degrees(np.arctan2(-segment[2], -segment[1])))
 
 
-def body_tilt_deg(world: np.ndarray | None, confidences: np.ndarray) -> float | None:
-    """How far the whole detected body leans towards the camera: the smaller of the torso's lean (hip
-    centre -> shoulder centre) and the whole body's (ankle centre -> shoulder centre), :func:`lean_deg`.
-    A camera above the person tilts both; a person leaning or bowing forward tilts the torso, and a
-    seated one's legs point at the camera (the whole body's lean falls), so neither reads as a camera
-    above. None without 3D landmarks or with a shoulder, hip or ankle not sure."""
+def body_tilt_deg(world: np.ndarray | None, confidences: np.ndarray) -> tuple[float, bool] | None:
+    """How far the whole detected body leans towards the camera, and whether the person is seated.
+
+    Standing: the smaller of the torso's lean (hip centre -> shoulder centre) and the whole body's (ankle
+    centre -> shoulder centre), :func:`lean_deg`. A camera above the person tilts both; a person leaning
+    or bowing forward tilts the torso alone. Seated (the thighs, knee centre -> hip centre, pointing at
+    the camera: leaning back :data:`SEATED_THIGHS_DEG` or more): the smaller of the torso's lean and the
+    shins' (ankle centre -> knee centre), which stand as a standing person's legs do. None without 3D
+    landmarks or with a shoulder, hip, knee or ankle not sure."""
     torso = lean_deg(world, confidences, [11, 12], [5, 6])
-    body = lean_deg(world, confidences, [15, 16], [5, 6])
-    return None if torso is None or body is None else min(torso, body)
+    thighs = lean_deg(world, confidences, [13, 14], [11, 12])
+    if torso is None or thighs is None:
+        return None
+    seated = thighs <= -SEATED_THIGHS_DEG
+    legs = lean_deg(world, confidences, [15, 16], [13, 14] if seated else [5, 6])
+    return None if legs is None else (min(torso, legs), seated)
 
 
 def foreshortening(view: InputView) -> float | None:
@@ -486,26 +495,33 @@ def orbit_elevation(view: InputView, elevation_deg: float) -> tuple[float, float
     """The elevation (degrees) to build the orbit at, and the body tilt that raised it (None: not raised).
 
     A photo taken from above shows an upright person leaning towards the camera. MediaPipe's 3D body
-    (:func:`body_tilt_deg`) tilts 3-18 deg towards the camera on renders of five synthetic subjects
-    (standing, walking, an A-pose, hands on the hips, a hand on the face) and the two fixture scans
-    photographed from 10 deg above, 11-22 from 20 deg, 16-30 from 30 deg and 15-38 from 40 deg, and
-    -17 to 17 on the other photos of the benchmarks and the fixtures (from 10 deg or level): about half
-    the elevation, 10 deg apart between subjects. Built at ``elevation_deg`` (10), the scans
-    photographed from 30 deg came out bowing with their legs swept behind them (side IoU 0.28 / 0.44);
-    built at 20 deg, 0.59 / 0.70. The wrong way costs as much:
-    their photos from 10 deg built at 20 fall from 0.83 / 0.72 to 0.58 / 0.47. So only a tilt beyond
-    :data:`FROM_ABOVE_TILT_DEG`, above every photo from 10 deg measured, raises the orbit, by
-    :data:`RAISE_PER_TILT` degrees per degree beyond it, at most :data:`MAX_RAISE_DEG`, where the photo
-    also foreshortens the legs at least as much as the torso (:func:`foreshortening`: a bow towards the
-    camera foreshortens the torso instead). A person who really leans towards the camera as a whole is
-    stood upright too."""
-    tilt = body_tilt_deg(view.world_keypoints, view.confidences)
-    if tilt is None or tilt <= FROM_ABOVE_TILT_DEG:
+    (:func:`body_tilt_deg`) tilts 3-18 deg towards the camera on renders of five synthetic standing
+    subjects (standing, walking, an A-pose, hands on the hips, a hand on the face) and the two fixture
+    scans photographed from 10 deg above, 11-22 from 20 deg, 16-30 from 30 deg and 15-38 from 40 deg,
+    and -17 to 18.5 on the other photos of the benchmarks and the fixtures (from 10 deg or level):
+    about half the elevation, 10 deg apart between subjects. Seated people tilt less: 3-11 deg from 10
+    deg above (four synthetic subjects), 12-15 from 20, 17-23 from 30, 19-36 from 40. Built at
+    ``elevation_deg`` (10), the scans photographed from 30 deg came out bowing with their legs swept
+    behind them (side IoU 0.28 / 0.44; built at 20 deg, 0.59 / 0.70), seated subjects leaning over
+    their knees (0.25-0.50; built at 20 or 30, 0.73-0.77). The wrong way costs as much: the scans'
+    photos from 10 deg built at 20 fall from 0.83 / 0.72 to 0.58 / 0.47. So only a tilt beyond
+    :data:`FROM_ABOVE_TILT_DEG` (seated: :data:`SEATED_TILT_DEG`), above every photo from 10 deg
+    measured, raises the orbit, by :data:`RAISE_PER_TILT` degrees per degree beyond it, at most
+    :data:`MAX_RAISE_DEG`; a standing person's photo must also foreshorten the legs at least as much
+    as the torso (:func:`foreshortening`: a deep bow towards the camera foreshortens the torso
+    instead). A person who really leans towards the camera as a whole is stood upright too."""
+    measured = body_tilt_deg(view.world_keypoints, view.confidences)
+    if measured is None:
         return float(elevation_deg), None
-    legs = foreshortening(view)
-    if legs is None or legs < LEGS_FORESHORTENED:  # a bow: nothing tells it from above
+    tilt, seated = measured
+    beyond = tilt - (SEATED_TILT_DEG if seated else FROM_ABOVE_TILT_DEG)
+    if beyond <= 0.0:
         return float(elevation_deg), None
-    return float(elevation_deg) + min(RAISE_PER_TILT * (tilt - FROM_ABOVE_TILT_DEG), MAX_RAISE_DEG), tilt
+    if not seated:
+        legs = foreshortening(view)
+        if legs is None or legs < LEGS_FORESHORTENED:  # a bow: nothing tells it from above
+            return float(elevation_deg), None
+    return float(elevation_deg) + min(RAISE_PER_TILT * beyond, MAX_RAISE_DEG), tilt
 
 
 def centring_transform(points: np.ndarray, camera_c2w: np.ndarray) -> np.ndarray:

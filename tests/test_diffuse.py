@@ -422,14 +422,17 @@ def test_a_photo_taken_from_above_raises_the_orbit_so_the_person_stands_upright(
 def test_a_bow_or_a_lean_towards_the_camera_does_not_raise_the_orbit():
     """A whole body tilted 39 deg towards the camera raises the orbit when the photo foreshortens the legs
     at least as much as the torso (a camera above); not when it foreshortens the torso (a bow towards the
-    camera), nor when only the torso leans (the legs upright), nor when the ankles are not seen."""
+    camera), nor when only the torso leans (the legs upright), nor when the ankles are not seen. A seated
+    person (thighs pointing at the camera) tilted 18 deg is raised; standing, 18 deg is within what
+    photos from 10 deg show."""
     from types import SimpleNamespace
 
     from humanvdm_core.body_prior import MAX_RAISE_DEG, orbit_elevation
 
     upright = np.zeros((17, 3))
     upright[[11, 12], 0], upright[[5, 6], 0], upright[[15, 16], 0] = [0.1, -0.1], [0.18, -0.18], [0.1, -0.1]
-    upright[[5, 6], 1], upright[[15, 16], 1] = -0.5, 0.8  # y down: shoulders above the hips, ankles below
+    upright[[13, 14], 0] = [0.1, -0.1]
+    upright[[5, 6], 1], upright[[13, 14], 1], upright[[15, 16], 1] = -0.5, 0.4, 0.8  # y down: shoulders up
     tilt = np.radians(39.0)  # towards the camera (z away from it): a point above the hips comes nearer
     turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(tilt), -np.sin(tilt)], [0.0, np.sin(tilt), np.cos(tilt)]])
     tilted = upright @ turn.T
@@ -449,3 +452,44 @@ def test_a_bow_or_a_lean_towards_the_camera_does_not_raise_the_orbit():
     hidden = conf.copy()
     hidden[[15, 16]] = 0.2
     assert orbit_elevation(view(tilted, 50.0, 70.0, hidden), 10.0) == (10.0, None)
+
+    seated = upright.copy()  # thighs pointing at the camera, shins hanging: tilted 18 deg, it is raised
+    seated[[13, 14], 1], seated[[13, 14], 2], seated[[15, 16], 1], seated[[15, 16], 2] = 0.0, -0.4, 0.45, -0.4
+    small = np.radians(18.0)
+    seated_tilt = seated @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(small), -np.sin(small)],
+                                     [0.0, np.sin(small), np.cos(small)]]).T
+    raised, seen = orbit_elevation(view(seated_tilt, 50.0, 30.0), 10.0)
+    assert round(seen) == 18 and abs(raised - (10.0 + 2.5 * (18.0 - 12.0))) < 0.5, (raised, seen)
+    assert orbit_elevation(view(seated, 50.0, 30.0), 10.0) == (10.0, None)  # seated, photographed level
+    standing_tilt = upright @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(small), -np.sin(small)],
+                                        [0.0, np.sin(small), np.cos(small)]]).T
+    assert orbit_elevation(view(standing_tilt, 50.0, 70.0), 10.0) == (10.0, None)  # standing: 18 deg is noise
+
+
+def test_a_seated_person_photographed_from_above_sits_upright(tmp_path):
+    """A seated subject photographed from 35 deg above (as from a standing photographer): its thighs
+    point at the camera, so the whole body's lean is no gauge; its torso and shins lean towards the
+    camera, the orbit is raised, and the fitted torso sits upright where, built at 10 deg, it leans
+    over the knees."""
+    torch.set_num_threads(1)
+    from humanvdm_core.body_prior import build_body_proxy
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+    from testdata.synthetic import SubjectSpec, make_subject
+
+    mesh = normalize_scan(load_scan(make_subject(SubjectSpec(pose="seated", seed=2), tmp_path / "s",
+                                                 texture_size=256)))
+    cam = orbit_cameras(1, 512, 33.8, 35.0, framing_radius(), azimuths_deg=np.array([0.0]))
+    photo = tmp_path / "seated_from_35.png"
+    write_png(photo, render_views(mesh, cam, (1.0, 1.0, 1.0)).rgba[0][..., :3])
+
+    above = build_body_proxy(photo, size=SIZE)
+    raised = float(above.cameras.elevation_deg[0])
+    assert raised >= 20.0, raised
+    assert any(w.startswith("seated_from_35.png looks taken from above") for w in above.warnings), above.warnings
+    flat = build_body_proxy(photo, size=SIZE, raise_from_above=False)
+    lean, flat_lean = _upright_errors(above.coco17)[0], _upright_errors(flat.coco17)[0]
+    print(f"raised to {raised:.1f} deg: torso lean {lean:.1f} deg; at 10 deg: {flat_lean:.1f}")
+    assert lean < 10.0 and flat_lean > lean + 8.0, (lean, flat_lean)
