@@ -3,7 +3,7 @@
 Each :class:`Case` is one failure category with a photo that carries truth: a fixture scan
 (RenderPeople Mei) or a synthetic Anny subject (:mod:`testdata.synthetic`, posed and dressed
 for the case) is turned so that its view from azimuth 0 is the photo, rendered at elevation 10 deg
-over white and then edited in 2D where the category asks for it (cut at the knees or past the
+(30 for a photo taken from above) over white and then edited in 2D where the category asks for it (cut at the knees or past the
 wrists, put in a very wide frame, a second person beside it, a cluttered background). The *truth* is
 the same mesh: an orbit frame at azimuth ``a`` of the photo is compared with the mesh rendered at
 that frame's camera.
@@ -79,6 +79,7 @@ class Case:
     edit: str = "none"
     size: int = 0  # photo size in pixels; 0: the suite's photo size
     alpha: bool = False  # keep the render's alpha (an RGBA cut-out) instead of an opaque photo
+    elevation_deg: float = ELEVATION  # the photo's camera elevation (30: a photo taken from above)
     note: str = ""
 
 
@@ -117,6 +118,11 @@ CASES: tuple[Case, ...] = (
          "nobody in it"),
     Case("wide_4to1", "extreme aspect ratio (4:1)", f"scan:{MEI}", ("iou",), edit="wide"),
     Case("held_object", "held object (a box in the right hand)", "synthetic:standing", ("iou",), edit="held_object"),
+    Case("from_above", "photo from above (30 deg)", f"scan:{MEI}", ("warns:taken from above", "iou"),
+         elevation_deg=30.0, note="Mei photographed from 30 deg above; scored at the orbit's own (raised) cameras"),
+    Case("seated_from_above", "seated, photo from above (30 deg)", "synthetic:seated",
+         ("warns:taken from above", "iou"), elevation_deg=30.0,
+         note="as a standing photographer sees a seated person; scored at the orbit's own (raised) cameras"),
 )
 QUICK_CASES = ("tiny_100px", "from_behind")
 NOT_COVERED = {
@@ -160,7 +166,7 @@ def held_box(folder: Path):
 
 
 def truth_mesh(case: Case, work: Path):
-    """The case's truth: the mesh whose view from azimuth 0 (elevation 10) is the photo, normalised."""
+    """The case's truth: the mesh whose view from azimuth 0 (at the case's elevation) is the photo, normalised."""
     from humanvdm_core.scans import load_scan, merge_meshes, normalize_scan
 
     kind, key = case.source.split(":", 1)
@@ -173,13 +179,14 @@ def truth_mesh(case: Case, work: Path):
     return normalize_scan(mesh, yaw_deg=case.yaw_deg)
 
 
-def render_front(mesh, size: int) -> np.ndarray:
-    """RGBA float (size, size, 4) of ``mesh`` from azimuth 0, elevation 10, at the orbit framing (RGB over white)."""
+def render_front(mesh, size: int, elevation_deg: float = ELEVATION) -> np.ndarray:
+    """RGBA float (size, size, 4) of ``mesh`` from azimuth 0, ``elevation_deg`` (10), at the orbit framing (RGB
+    over white)."""
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius
 
-    cam = orbit_cameras(1, size, elevation_deg=ELEVATION, radius=framing_radius(), azimuths_deg=np.array([0.0]))
+    cam = orbit_cameras(1, size, elevation_deg=elevation_deg, radius=framing_radius(), azimuths_deg=np.array([0.0]))
     return render_views(mesh, cam, WHITE).rgba[0]
 
 
@@ -211,7 +218,7 @@ def clutter_background(height: int, width: int, seed: int = 7) -> np.ndarray:
 def make_photo(case: Case, mesh, work: Path, photo_size: int) -> np.ndarray:
     """The case's photo, RGB float over white (opaque, as a camera gives it; RGBA with ``alpha``)."""
     size = case.size or photo_size
-    rgba = render_front(mesh, size)
+    rgba = render_front(mesh, size, case.elevation_deg)
     if case.edit == "none" or case.edit == "held_object":
         return rgba if case.alpha else rgba[..., :3]
     if case.edit == "crop_knees":

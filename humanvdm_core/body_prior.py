@@ -566,7 +566,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     if tilt is not None:
         warnings.append(f"{name} looks taken from above (the body's 3D landmarks lean {tilt:.0f} deg towards the "
                         f"camera): the orbit is raised to {elevation:.0f} deg elevation (from {elevation_deg:.0f}) so "
-                        "the person stands upright; if they lean or bow towards the camera instead, set "
+                        "the person stands or sits upright; if they lean or bow towards the camera instead, set "
                         "diffuse.raise_from_above=false")
     cameras = orbit_cameras(num_frames, size, FOV_DEG, elevation, framing_radius(SUBJECT_HEIGHT, FOV_DEG, fill))
     cameras.extra.update({"background": np.asarray(background, np.float64), "fill": np.float64(fill)})

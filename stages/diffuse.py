@@ -65,7 +65,7 @@ SPEC = StageSpec(
                                 backend="body-prior"),
         "raise_from_above": Param(True, "body-prior: a photo taken from above (MediaPipe's 3D torso and legs leaning "
                                         "towards the camera) raises the orbit above elevation_deg so the person "
-                                        "stands upright",
+                                        "stands or sits upright",
                                   backend="body-prior"),
         "geometry": Param("clothed", "body-prior: render the orbit from the clothed proxy (the person's whole "
                                      "silhouette given depth) or from the naked fitted body (the ablation)",
