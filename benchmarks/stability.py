@@ -3,8 +3,9 @@
 Each :class:`Case` is one failure category with a photo that carries truth: a fixture scan
 (RenderPeople Mei) or a synthetic Anny subject (:mod:`testdata.synthetic`, posed and dressed
 for the case) is turned so that its view from azimuth 0 is the photo, rendered at elevation 10 deg
-(30 for a photo taken from above) over white and then edited in 2D where the category asks for it (cut at the knees or past the
-wrists, put in a very wide frame, a second person beside it, a cluttered background). The *truth* is
+(30 for a photo taken from above) over white and then edited in 2D where the category asks for it
+(cut at the knees or past the wrists, put in a very wide frame, a second person beside it, a
+cluttered background). The *truth* is
 the same mesh: an orbit frame at azimuth ``a`` of the photo is compared with the mesh rendered at
 that frame's camera.
 

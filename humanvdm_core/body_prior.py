@@ -96,12 +96,13 @@ HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampl
 FACE_ROWS = (0.55, 0.75)  # ... less what has the colour of the face's skin (these rows of the head, its middle fifth) ...
 HAIR_SHARE = 0.2  # ... when at least this share of the band is left
 HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
-FROM_ABOVE_TILT_DEG = 20.0  # the detector's 3D body tilting further towards the camera (SEATED_TILT_DEG seated, its
-SEATED_TILT_DEG = 12.0  # thighs leaning back SEATED_THIGHS_DEG or more): a photo from above ...
-SEATED_THIGHS_DEG = 30.0
-RAISE_PER_TILT = 2.5  # ... raises the orbit by this many degrees per degree of excess tilt ...
-MAX_RAISE_DEG = 20.0  # ... and by at most this, where the legs are foreshortened at least this much as the
-LEGS_FORESHORTENED = 0.95  # torso (foreshortening()): a bow towards the camera foreshortens the torso instead
+# A photo from above (orbit_elevation): the detector's 3D body tilting towards the camera beyond
+FROM_ABOVE_TILT_DEG = 20.0  # this (standing) ...
+SEATED_TILT_DEG = 12.0  # ... or this (seated: its 3D thighs lean back THIGHS_AT_CAMERA_DEG or more) ...
+THIGHS_AT_CAMERA_DEG = 30.0
+RAISE_PER_TILT = 2.5  # ... raises the orbit by this many degrees per degree beyond it ...
+MAX_RAISE_DEG = 20.0  # ... by at most this, and, standing, only where the photo foreshortens the legs at least
+LEGS_FORESHORTENED = 0.95  # this much as the torso (foreshortening(): a bow foreshortens the torso instead)
 
 
 @dataclass
@@ -460,14 +461,14 @@ def body_tilt_deg(world: np.ndarray | None, confidences: np.ndarray) -> tuple[fl
     Standing: the smaller of the torso's lean (hip centre -> shoulder centre) and the whole body's (ankle
     centre -> shoulder centre), :func:`lean_deg`. A camera above the person tilts both; a person leaning
     or bowing forward tilts the torso alone. Seated (the thighs, knee centre -> hip centre, pointing at
-    the camera: leaning back :data:`SEATED_THIGHS_DEG` or more): the smaller of the torso's lean and the
+    the camera: leaning back :data:`THIGHS_AT_CAMERA_DEG` or more): the smaller of the torso's lean and the
     shins' (ankle centre -> knee centre), which stand as a standing person's legs do. None without 3D
     landmarks or with a shoulder, hip, knee or ankle not sure."""
     torso = lean_deg(world, confidences, [11, 12], [5, 6])
     thighs = lean_deg(world, confidences, [13, 14], [11, 12])
     if torso is None or thighs is None:
         return None
-    seated = thighs <= -SEATED_THIGHS_DEG
+    seated = thighs <= -THIGHS_AT_CAMERA_DEG
     legs = lean_deg(world, confidences, [15, 16], [13, 14] if seated else [5, 6])
     return None if legs is None else (min(torso, legs), seated)
 

@@ -433,9 +433,13 @@ def test_a_bow_or_a_lean_towards_the_camera_does_not_raise_the_orbit():
     upright[[11, 12], 0], upright[[5, 6], 0], upright[[15, 16], 0] = [0.1, -0.1], [0.18, -0.18], [0.1, -0.1]
     upright[[13, 14], 0] = [0.1, -0.1]
     upright[[5, 6], 1], upright[[13, 14], 1], upright[[15, 16], 1] = -0.5, 0.4, 0.8  # y down: shoulders up
-    tilt = np.radians(39.0)  # towards the camera (z away from it): a point above the hips comes nearer
-    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(tilt), -np.sin(tilt)], [0.0, np.sin(tilt), np.cos(tilt)]])
-    tilted = upright @ turn.T
+
+    def tilt(world: np.ndarray, deg: float) -> np.ndarray:
+        """``world`` turned ``deg`` towards the camera (z away from it): a point above the hips comes nearer."""
+        a = np.radians(deg)
+        return world @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]]).T
+
+    tilted = tilt(upright, 39.0)
     torso_only = upright.copy()
     torso_only[[5, 6]] = tilted[[5, 6]]
     conf = np.ones(17)
@@ -455,15 +459,10 @@ def test_a_bow_or_a_lean_towards_the_camera_does_not_raise_the_orbit():
 
     seated = upright.copy()  # thighs pointing at the camera, shins hanging: tilted 18 deg, it is raised
     seated[[13, 14], 1], seated[[13, 14], 2], seated[[15, 16], 1], seated[[15, 16], 2] = 0.0, -0.4, 0.45, -0.4
-    small = np.radians(18.0)
-    seated_tilt = seated @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(small), -np.sin(small)],
-                                     [0.0, np.sin(small), np.cos(small)]]).T
-    raised, seen = orbit_elevation(view(seated_tilt, 50.0, 30.0), 10.0)
+    raised, seen = orbit_elevation(view(tilt(seated, 18.0), 50.0, 30.0), 10.0)
     assert round(seen) == 18 and abs(raised - (10.0 + 2.5 * (18.0 - 12.0))) < 0.5, (raised, seen)
     assert orbit_elevation(view(seated, 50.0, 30.0), 10.0) == (10.0, None)  # seated, photographed level
-    standing_tilt = upright @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(small), -np.sin(small)],
-                                        [0.0, np.sin(small), np.cos(small)]]).T
-    assert orbit_elevation(view(standing_tilt, 50.0, 70.0), 10.0) == (10.0, None)  # standing: 18 deg is noise
+    assert orbit_elevation(view(tilt(upright, 18.0), 50.0, 70.0), 10.0) == (10.0, None)  # standing: 18 deg is noise
 
 
 def test_a_seated_person_photographed_from_above_sits_upright(tmp_path):
