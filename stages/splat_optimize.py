@@ -144,6 +144,7 @@ def run(ctx: StageContext) -> None:
     from humanvdm_core.frames import read_cameras
     from humanvdm_core.io import write_npz, write_png
     from humanvdm_core.splat import human as H
+    from humanvdm_core.splat.rasterize import gsplat_missing_warning
     from humanvdm_core.splat.template import init_colors, start_anchor
     from humanvdm_core.workflow.errors import ConfigError
 
@@ -159,6 +160,8 @@ def run(ctx: StageContext) -> None:
 
         require_weights(p["lpips_weights"], "LPIPS weights for the splat loss", "the LPIPS project's releases")
     device = torch.device("cuda" if cuda else "cpu")
+    if (warning := gsplat_missing_warning()) is not None:
+        ctx.log.warning("%s", warning)
     torch.manual_seed(p["seed"])
     body_path = ctx.inputs["body"]
     body_path = body_path / "body.npz" if body_path.is_dir() else body_path

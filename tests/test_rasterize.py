@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import math
+import sys
+import types
 
 import pytest
 import torch
@@ -282,6 +284,18 @@ def test_bad_inputs_and_backends():
             rasterize_gaussians(**s, width=8, height=8, backend="gsplat")
         expected = "numba" if rz._numba_available() else "torch"
         assert rasterize_gaussians(**s, width=8, height=8, backend="auto")[2]["backend"] == expected
+
+
+def test_a_gpu_without_gsplat_is_warned(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setitem(sys.modules, "gsplat", None)  # `import gsplat` raises ImportError
+    warning = rz.gsplat_missing_warning()
+    assert warning is not None and "gsplat does not import" in warning and "28x slower" in warning
+    monkeypatch.setitem(sys.modules, "gsplat", types.ModuleType("gsplat"))  # gsplat imports: nothing to say
+    assert rz.gsplat_missing_warning() is None
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # no GPU: the CPU paths are the right ones
+    monkeypatch.setitem(sys.modules, "gsplat", None)
+    assert rz.gsplat_missing_warning() is None
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat needs CUDA")
