@@ -44,7 +44,8 @@ Output ``gaussians``:
 - ``train_log.json``: loss curve, final training PSNR, resolved settings, the template, the Gaussian counts
   (initial, after each densify step, final); no timings (those are the lockfile's).
 
-Deterministic: same inputs + params + seed -> identical ``gaussians.npz`` and PLY bytes on one machine.
+Deterministic on the CPU: same inputs + params + seed -> identical ``gaussians.npz`` and PLY bytes on one
+machine (on CUDA, gsplat's backward adds in parallel, so the last bits may vary between runs).
 """
 
 from __future__ import annotations

@@ -359,3 +359,32 @@ def test_codeformer_stage_missing_codeformer_weights(tmp_path):
     assert r.returncode == 3
     assert str(tmp_path / "codeformer.pth") in r.stderr and "sczhou/CodeFormer" in r.stderr
     assert "non-commercial" in r.stderr
+
+
+def test_deterministic_runs_a_model_with_torch_deterministic_on_cuda_and_restores(monkeypatch):
+    """``checkpoint.deterministic`` (on PerVFI, RIFE, Real-ESRGAN, CodeFormer inference): with CUDA the call
+    runs under torch's deterministic algorithms (PerVFI's index_add_ splatting otherwise varies in the last
+    bits between runs on a GPU, as measured on an H200), cuDNN deterministic, no autotuning, a fixed cuBLAS
+    workspace; the settings are restored afterwards; without CUDA nothing changes."""
+    import os
+
+    from humanvdm_core.models.checkpoint import deterministic
+
+    def flags() -> tuple[bool, bool, bool]:
+        return (torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.deterministic,
+                torch.backends.cudnn.benchmark)
+
+    seen = []
+
+    @deterministic
+    def infer(x: int) -> int:
+        seen.append(flags())
+        return x + 1
+
+    before = flags()
+    monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert infer(1) == 2 and seen[-1] == before and "CUBLAS_WORKSPACE_CONFIG" not in os.environ
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert infer(2) == 3 and seen[-1] == (True, True, False)
+    assert flags() == before and os.environ["CUBLAS_WORKSPACE_CONFIG"] == ":4096:8"

@@ -311,8 +311,9 @@ def test_identical_frames_keep_their_alpha_with_zero_flow(tiny):
     from humanvdm_core.interpolate import pervfi
 
     model = pervfi.load(*tiny)
-    f = torch.from_numpy(frame(32, 40, 2)).permute(2, 0, 1)[None]
-    zero = torch.zeros(1, 2, 32, 40)
+    device = next(model.generator.parameters()).device  # CUDA where present (tensors in, tensors out)
+    f = torch.from_numpy(frame(32, 40, 2)).permute(2, 0, 1)[None].to(device)
+    zero = torch.zeros(1, 2, 32, 40, device=device)
     pred, aux = pervfi.synthesize(model, f[:, :3], f[:, :3], flows=(zero, zero))
     assert pred.shape == (1, 3, 32, 40)
     assert torch.equal(aux["ft1"], torch.zeros_like(aux["ft1"]))

@@ -64,6 +64,7 @@ from humanvdm_core.models.checkpoint import (
     CheckpointError,
     build_strict,
     cached_model,
+    deterministic,
 )
 
 WHAT = "PerVFI generator weights (v00.pth)"
@@ -753,6 +754,7 @@ def blend_alpha(alpha0: torch.Tensor, alpha1: torch.Tensor, aux: dict) -> torch.
     return (a0 * (1 - sm) + a1 * sm).clamp(0.0, 1.0)
 
 
+@deterministic
 @torch.no_grad()
 def interpolate_pair(model: PerVFI, frame0: np.ndarray, frame1: np.ndarray, time: float = 0.5,
                      heat: float = HEAT, seed: int = SEED) -> np.ndarray:

@@ -33,6 +33,7 @@ from humanvdm_core.models.checkpoint import (
     CheckpointError,
     build_strict,
     cached_model,
+    deterministic,
 )
 
 WHAT = "RIFE v4.6 IFNet weights (flownet.pkl)"
@@ -140,6 +141,7 @@ def load(path: str | Path) -> IFNet:
     return cached_model(build, path)
 
 
+@deterministic
 @torch.no_grad()
 def interpolate_pair(net: IFNet, frame0: np.ndarray, frame1: np.ndarray, times: list[float]) -> list[np.ndarray]:
     """(H, W, C) frames in [0, 1] (C >= 3) -> the frames at each ``t`` in ``times``, clamped to [0, 1]."""

@@ -9,10 +9,13 @@
   listing missing/unexpected keys and shape mismatches when the layout is not the expected one.
 - :func:`build_strict` does both for an architecture read from the checkpoint's shapes.
 - :func:`cached_model` builds a model once per (builder, file path, size, mtime) in a process.
+- :func:`deterministic` makes a model's inference give the same bits for the same inputs on CUDA too.
 """
 
 from __future__ import annotations
 
+import functools
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -103,3 +106,31 @@ def infer_device():
     import torch
 
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def deterministic(fn: Callable) -> Callable:
+    """Decorator: run ``fn`` with torch's deterministic algorithms when CUDA is present (reductions that
+    use atomic adds on the GPU, such as PerVFI's ``index_add_`` splatting, sorted instead; cuDNN's
+    deterministic convolutions; cuBLAS with a fixed workspace), so the same inputs give the same output
+    bits on every run, as on the CPU; the previous settings are restored afterwards. Without CUDA it
+    changes nothing."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        import torch
+
+        if not torch.cuda.is_available():
+            return fn(*args, **kwargs)
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # read when cuBLAS starts
+        cudnn = torch.backends.cudnn
+        saved = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+                 cudnn.deterministic, cudnn.benchmark)
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        cudnn.deterministic, cudnn.benchmark = True, False
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
+            cudnn.deterministic, cudnn.benchmark = saved[2], saved[3]
+
+    return run

@@ -40,6 +40,7 @@ from humanvdm_core.models.blocks import AttnBlock, Downsample, Upsample, group_n
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
     cached_model,
+    deterministic,
     infer_device,
     load_strict,
     read_state_dict,
@@ -258,6 +259,7 @@ def load(path: str | Path) -> CodeFormer:
     return cached_model(build, path)
 
 
+@deterministic
 @torch.no_grad()
 def restore_face(net: CodeFormer, face: np.ndarray, fidelity: float = 0.7) -> np.ndarray:
     """(S, S, 3) RGB in [0, 1] with S = ``net.size`` -> restored RGB in [0, 1] (float32)."""

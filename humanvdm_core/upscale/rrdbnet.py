@@ -30,6 +30,7 @@ from torch import nn
 from humanvdm_core.models.checkpoint import (
     CheckpointError,
     cached_model,
+    deterministic,
     infer_device,
     load_strict,
     read_state_dict,
@@ -126,6 +127,7 @@ def load(path: str | Path) -> RRDBNet:
     return cached_model(build, path)
 
 
+@deterministic
 @torch.no_grad()
 def upscale_rgb(net: RRDBNet, rgb: np.ndarray, tile: int = 256, tile_pad: int = 16) -> np.ndarray:
     """(H, W, 3) float RGB in [0, 1] -> (scale H, scale W, 3) float32, tile by tile (``tile`` <= 0: whole).
