@@ -10,6 +10,9 @@ file that appears when it is done) overlaps the first:
   two CFG halves) at 576² (latents 72²): fp32, fp16 autocast (what ``diffuse`` uses on CUDA) and bf16
   autocast -- median seconds, peak GPU memory, and each low-precision output's relative L2 error against
   fp32. The orbit estimate is ``50 x`` the fp16 step (the VAE and CLIP are not timed).
+- ``sv3d_orbit`` (not in the default ``--sections``): the whole ``generate_orbit`` with every part at
+  SV3D_p's real size (the UNet, OpenCLIP ViT-H/14, sgm's VAE encoder and video decoder; random
+  weights): seconds for one orbit of 21 frames at 576² and 50 steps, peak GPU memory.
 - ``rasterize``: ``rasterize_gaussians`` with ``backend="torch"`` (our tiled PyTorch path, on CUDA) and
   ``"gsplat"`` on :mod:`benchmarks.bench_rasterize`'s body-shaped scenes: agreement (image PSNR and max
   difference of gsplat against ours, alpha, the cosine similarity of each parameter's gradient) and speed
@@ -145,6 +148,50 @@ def sv3d_section(dev, smoke: bool) -> dict:
             out["unet"][name]["relative_l2_vs_fp32"] = round(float(err), 5)
     if "fp16" in out["unet"] and "step_s" in out["unet"]["fp16"]:
         out["orbit_estimate_s_50_steps_fp16"] = round(50 * out["unet"]["fp16"]["step_s"], 1)
+    return out
+
+
+def sv3d_orbit_section(dev, smoke: bool) -> dict:
+    """The whole ``generate_orbit`` (CLIP, VAE encode, 50 EDM steps with CFG, chunked video decoding) with
+    every part at SV3D_p's real size and random weights (timing and memory, not quality)."""
+    import numpy as np
+    import torch
+
+    from humanvdm_core.models import openclip_vision, sv3d, sv3d_unet, sv3d_vae
+
+    widths = (32, 64) if smoke else (128, 256, 512, 512)  # sgm's VAE: ch 128, ch_mult (1, 2, 4, 4)
+    with torch.device("meta"):
+        unet = sv3d_unet.VideoUNet(sv3d_unet.tiny_config() if smoke else sv3d_unet.SV3D_CONFIG)
+        clip = (openclip_vision.OpenCLIPImageEmbedder(width=64, layers=1, heads=1, mlp_width=128,
+                                                     output_dim=unet.config["context_dim"]) if smoke
+                else openclip_vision.OpenCLIPImageEmbedder())  # ViT-H/14, output 1024
+        encoder = sv3d_vae.CondFrameEncoder(widths[0], widths, 2, 4, 4)
+        decoder = sv3d_vae.VideoFirstStage(widths, 2, 4)
+    model = sv3d.SV3D("sv3d_p", unet, clip, encoder, decoder).to_empty(device=dev)
+    g = torch.Generator(device=dev).manual_seed(0)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0.0, 0.02, generator=g)
+        for name, buf in model.named_buffers():  # CLIP's normalisation constants
+            if name.endswith("mean"):
+                buf.copy_(torch.tensor(openclip_vision.CLIP_MEAN).view(1, 3, 1, 1))
+            elif name.endswith("std"):
+                buf.copy_(torch.tensor(openclip_vision.CLIP_STD).view(1, 3, 1, 1))
+    model.eval()
+    size = 64 if smoke else sv3d.SIZE
+    image = np.ones((size, size, 4), np.float32)
+    image[size // 4:3 * size // 4, 3 * size // 8:5 * size // 8, :3] = 0.3
+    steps = 2 if smoke else sv3d.DEFAULT_STEPS
+    sv3d.generate_orbit(model, image, steps=1, seed=0)  # warm-up (kernels, allocator)
+    _sync()
+    _peak_mb(reset=True)
+    t0 = time.perf_counter()
+    frames = sv3d.generate_orbit(model, image, steps=steps, seed=0)
+    _sync()
+    out = {"parameters": sum(p.numel() for p in model.parameters()), "frames": len(frames), "size": size,
+           "steps": steps, "seconds": round(time.perf_counter() - t0, 2), "peak_gpu_mb": _peak_mb(),
+           "finite": bool(np.isfinite(frames).all())}
+    print("sv3d orbit", out, flush=True)
     return out
 
 
@@ -299,6 +346,12 @@ def main() -> None:
             build["error"] = traceback.format_exc()[-2000:]
         doc["result"]["gsplat"] = build
         print("gsplat", build, flush=True)
+        save()
+    if "sv3d_orbit" in sections:
+        try:
+            doc["result"]["sv3d_orbit"] = sv3d_orbit_section(dev, args.smoke)
+        except Exception:
+            doc["result"]["sv3d_orbit"] = {"error": traceback.format_exc()[-2000:]}
         save()
     for name, fn in (("rasterize", rasterize_section), ("train_step", train_section)):
         if name in sections:

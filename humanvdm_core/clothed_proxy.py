@@ -20,10 +20,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    and the body behind it. Likewise where an arm or a hand is the body's farthest surface (behind the
    body, hidden by it: the far arm of a person seen in profile), it stands at most :data:`ARM_REACH`
    behind the farthest surface of the body without its arms (:func:`arm_reach_limit`), not a fin the
-   arm's length deep. An arm whose hand rests on the head (``placed_arms``) keeps its fitted depth where
-   the torso is behind it: the contact fixes the hand's depth, and a forearm rising to it from the
-   chest then stands as far before the chest as its length demands (before the head, where the fit's
-   elbows held out to the sides are as unsure as any, the limit holds). A hand's depth is its mean over
+   arm's length deep. An arm whose hand rests on the head (``placed_arms``) keeps its fitted depth
+   wherever it is: the contact fixes the hand's depth, and a forearm rising to it from the chest then
+   stands as far before the chest and the face as its length demands. A hand's depth is its mean over
    :data:`HAND_SMOOTH` of the grid (:func:`smooth_hands`): the photo does not show the fingers' depth,
    and the fitted fingers' relief would stand out from the side as shards.
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
@@ -252,8 +251,8 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
               sides: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage, the
     part of the nearest and of the farthest surface (-1 where empty), from ``sides`` (V,) in
-    {-1, 0, 1} their sides (0 where empty or without ``sides``), and the same depths and parts of the
-    body without its arms and hands (``trunk_*``: what lies behind an arm held before the body)."""
+    {-1, 0, 1} their sides (0 where empty or without ``sides``), and the same depths of the body
+    without its arms and hands (``trunk_*``: what lies behind an arm held before the body)."""
     from humanvdm_core.render import render_views
 
     # one part (and side) per face, drawn flat: codes interpolated across a face between two parts pass
@@ -295,8 +294,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
             "back_side": side_map(far), "trunk_front": trunk.depth[0].astype(np.float64),
-            "trunk_back": np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0),
-            "trunk_front_part": part_map(trunk), "trunk_back_part": part_map(trunk_far)}
+            "trunk_back": np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)}
 
 
 # ----------------------------------------------------------------------------- PDE helpers
@@ -838,7 +836,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     photo does not show the ankles (a long dress or coat), so the fitted legs' depth is a guess; ``profile``:
     the photo shows the person from the side, so the unseen side of the head mirrors the seen one;
     ``placed_arms``: the sides (+1 left, -1 right, the person's own) of arms whose depth a contact fixes (a
-    hand on the head): before (behind) the torso they keep the fitted depth, no :data:`ARM_REACH` limit."""
+    hand on the head): they keep the fitted depth, no :data:`ARM_REACH` limit."""
     size = camera.width
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
@@ -865,8 +863,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     limbs = [PARTS.index("arms"), PARTS.index("hands")]
 
     def placed(key: str) -> np.ndarray:
-        """Where the ``key`` ("front" / "back") surface is an arm a contact places, the torso behind it."""
-        return np.isin(maps[key + "_side"], placed_arms) & (maps[f"trunk_{key}_part"] == PARTS.index("torso"))
+        """Where the ``key`` ("front" / "back") surface is an arm a contact places."""
+        return np.isin(maps[key + "_side"], placed_arms)
 
     # the fitted arms and hands as the nearest surface, less those a contact places
     limb_front = body & np.isin(maps["front_part"], limbs) & ~placed("front")

@@ -760,18 +760,18 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
 
 
 def test_an_arm_whose_hand_a_contact_places_keeps_its_fitted_depth():
-    """An arm placed by a contact (a hand on the head, ``placed_arms``) is not pulled back to ARM_REACH
-    where the torso is behind it (an elbow before the chest): the "arm" pointing at the camera keeps its
-    tip, in front and behind; before (behind) the head it is pulled back as any arm; naming the other
-    side's arms changes nothing."""
+    """An arm placed by a contact (a hand on the head, ``placed_arms``) is not pulled back to ARM_REACH,
+    whether the torso (an elbow before the chest) or the head (a forearm before the face) is behind it:
+    the "arm" pointing at the camera keeps its tip, in front and behind; naming the other side's arms
+    changes nothing (it is pulled back as any arm)."""
     from humanvdm_core.clothed_proxy import ARM_REACH
 
     for centre_z, far in ((0.15 + 0.3, 0.75), (-0.15 - 0.3, -0.75)):
-        z = _proxy_of_torso_with_arm(0.16, centre_z, placed_arms=(1,)).mesh.vertices[:, 2]
-        assert abs(float(z.max() if far > 0 else z.min()) - far) < 0.04, (z.min(), z.max())
-        for placed, neck in (((-1,), 0.6), ((1,), -0.2)):  # the other arm; the arm before the "head"
-            z = _proxy_of_torso_with_arm(0.16, centre_z, placed_arms=placed, neck=neck).mesh.vertices[:, 2]
-            assert float(np.abs(z).max()) <= 0.15 + ARM_REACH + 0.02, (placed, neck, z.min(), z.max())
+        for neck in (0.6, -0.2):  # the "arm" before the torso; before the "head"
+            z = _proxy_of_torso_with_arm(0.16, centre_z, placed_arms=(1,), neck=neck).mesh.vertices[:, 2]
+            assert abs(float(z.max() if far > 0 else z.min()) - far) < 0.04, (neck, z.min(), z.max())
+            z = _proxy_of_torso_with_arm(0.16, centre_z, placed_arms=(-1,), neck=neck).mesh.vertices[:, 2]
+            assert float(np.abs(z).max()) <= 0.15 + ARM_REACH + 0.02, (neck, z.min(), z.max())
 
 
 def test_an_arm_behind_the_body_stands_at_most_arm_reach_behind_it():
