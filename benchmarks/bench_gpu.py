@@ -1,6 +1,7 @@
 """Benchmark: the GPU checks -- gsplat against our rasterizer, the ``full`` preset's training step, SV3D fp16.
 
-Needs a CUDA device (it runs on a CPU only as a smoke test with ``--smoke``). Three sections, in this
+Needs a CUDA device: without one it says so and exits 0 (``make bench`` runs every benchmark), unless
+``--smoke`` asks for tiny sizes on the CPU (a check of this script). Three sections, in this
 order so that gsplat's first-use compile (started beside this script; ``--gsplat-ready FILE`` names the
 file that appears when it is done) overlaps the first:
 
@@ -308,6 +309,10 @@ def main() -> None:
     parser.add_argument("--sections", default="sv3d,rasterize,train_step")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes (a CPU check of this script)")
     args = parser.parse_args()
+    if not torch.cuda.is_available() and not args.smoke:  # `make bench` on a machine without a GPU
+        print("bench_gpu: no CUDA device, skipped (results/gpu.json keeps the last GPU run; --smoke runs "
+              "tiny sizes on the CPU)")
+        return
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     doc: dict = {"benchmark": "gpu", "command": "python -m benchmarks.bench_gpu " + " ".join(sys.argv[1:]),
                  "date": time.strftime("%Y-%m-%d"), "python": platform.python_version(), "torch": torch.__version__,
