@@ -1,9 +1,9 @@
 """Benchmark: the GPU checks -- gsplat against our rasterizer, the ``full`` preset's training step, SV3D fp16.
 
 Needs a CUDA device: without one it says so and exits 0 (``make bench`` runs every benchmark), unless
-``--smoke`` asks for tiny sizes on the CPU (a check of this script). Three sections, in this
-order so that gsplat's first-use compile (started beside this script; ``--gsplat-ready FILE`` names the
-file that appears when it is done) overlaps the first:
+``--smoke`` asks for tiny sizes on the CPU (a check of this script). The sections, in this order (the
+SV3D ones first, so that gsplat's first-use compile, started beside this script, overlaps them;
+``--gsplat-ready FILE`` names the file that appears when it is done):
 
 - ``sv3d``: the whole ``generate_orbit`` with the tiny test checkpoint on CUDA (the fp16 autocast path
   runs end to end, frames finite); then the real-size video UNet (``SV3D_CONFIG``, 1.5 B parameters,
@@ -326,12 +326,18 @@ def main() -> None:
         Path(args.out).write_text(json.dumps(doc, indent=1) + "\n")
 
     sections = args.sections.split(",")
-    if "sv3d" in sections:
-        try:
-            doc["result"]["sv3d"] = sv3d_section(dev, args.smoke)
-        except Exception:
-            doc["result"]["sv3d"] = {"error": traceback.format_exc()[-2000:]}
-        save()
+
+    def run(name: str, fn, *fn_args) -> None:
+        """Section ``name`` when asked for: its result, or the error it raised, saved at once."""
+        if name in sections:
+            try:
+                doc["result"][name] = fn(*fn_args)
+            except Exception:
+                doc["result"][name] = {"error": traceback.format_exc()[-2000:]}
+            save()
+
+    run("sv3d", sv3d_section, dev, args.smoke)
+    run("sv3d_orbit", sv3d_orbit_section, dev, args.smoke)
     backends = ["torch"]
     if args.gsplat_ready:
         t0 = time.perf_counter()
@@ -352,19 +358,8 @@ def main() -> None:
         doc["result"]["gsplat"] = build
         print("gsplat", build, flush=True)
         save()
-    if "sv3d_orbit" in sections:
-        try:
-            doc["result"]["sv3d_orbit"] = sv3d_orbit_section(dev, args.smoke)
-        except Exception:
-            doc["result"]["sv3d_orbit"] = {"error": traceback.format_exc()[-2000:]}
-        save()
-    for name, fn in (("rasterize", rasterize_section), ("train_step", train_section)):
-        if name in sections:
-            try:
-                doc["result"][name] = fn(dev, backends, args.smoke)
-            except Exception:
-                doc["result"][name] = {"error": traceback.format_exc()[-2000:]}
-            save()
+    run("rasterize", rasterize_section, dev, backends, args.smoke)
+    run("train_step", train_section, dev, backends, args.smoke)
     print(f"wrote {args.out} in {doc['wall_s']} s", flush=True)
 
 
