@@ -553,7 +553,14 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     import torch
 
     from humanvdm_core.body import load_body_model
-    from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body, hands_on_head
+    from humanvdm_core.body.fit import (
+        FitOptions,
+        FrameObservation,
+        arms_read_short,
+        fit_body,
+        hands_on_head,
+        rebuild_arms,
+    )
     from humanvdm_core.perception.facing import estimate_facing
     from humanvdm_core.workflow.errors import ConfigError
 
@@ -585,7 +592,16 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     model = load_body_model("anny")
     torch.manual_seed(seed)
     fit_mask = view.mask if view.fit_mask is None else view.fit_mask
-    obs = FrameObservation(0, view.keypoints, view.confidences, fit_mask.copy(), list(view.warnings),
+    keypoints = view.keypoints
+    short = [] if view.world_keypoints is None else arms_read_short(keypoints, view.confidences, view.world_keypoints)
+    if short:  # the detector's 2D arm contradicts its own 3D one: the 3D direction (and the mask) decide
+        keypoints = rebuild_arms(keypoints, view.world_keypoints, short)
+        sides = " and ".join(("left", "right")[a] for a in short)
+        warnings.append(f"{name}: the pose model's 2D {sides} arm{'s' if len(short) > 1 else ''} "
+                        f"{'are' if len(short) > 1 else 'is'} much shorter than its 3D landmarks show (a costume, "
+                        "armour or a drawn figure?): the arm is fitted along its 3D direction and the silhouette, "
+                        "its length taken from the body's proportions")
+    obs = FrameObservation(0, keypoints, view.confidences, fit_mask.copy(), list(view.warnings),
                            world_keypoints=view.world_keypoints, unseen=view.unseen)
     fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),
                    logger=lg)

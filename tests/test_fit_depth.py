@@ -370,6 +370,75 @@ def test_frontal_arms_moves_only_arms_held_out_to_the_side():
         np.testing.assert_allclose(frontal_arms(world.astype(np.float32), k, c, up), world, atol=1e-6)
 
 
+def test_arms_read_short_tells_a_detector_contradicting_itself_from_foreshortening():
+    """arms_read_short / rebuild_arms on hand-made landmarks: a T-pose arm whose 2D wrist sits on the
+    elbow while its 3D landmarks lie in the image plane is read short and redrawn along them; an arm
+    pointing at the camera (short in 2D because its 3D direction leaves the plane), an arm of normal
+    length and an unsure arm are not."""
+    from humanvdm_core.body.fit import FOREARM_TORSO, UPPER_ARM_TORSO, arms_read_short, rebuild_arms
+
+    world = np.zeros((17, 3))
+    world[[5, 6]] = [[0.2, -0.5, 0.0], [-0.2, -0.5, 0.0]]
+    world[[11, 12]] = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
+    kp = np.zeros((17, 2))
+    kp[[5, 6, 11, 12]] = [[260, 100], [180, 100], [250, 200], [190, 200]]  # torso 100 px
+    conf = np.ones(17)
+    # the left arm held out sideways in 3D; in 2D its elbow 55 px out, its wrist 8 px beyond the elbow
+    world[7], world[9] = world[5] + [0.28, 0.0, -0.02], world[5] + [0.53, 0.0, -0.05]
+    kp[[7, 9]] = [[315, 100], [323, 100]]
+    # the right arm points at the camera in 3D and is short in 2D, as it should be
+    world[8], world[10] = world[6] + [-0.05, 0.02, -0.27], world[6] + [-0.08, 0.03, -0.52]
+    kp[[8, 10]] = [[170, 104], [164, 106]]
+    assert arms_read_short(kp, conf, world) == [0]
+    out = rebuild_arms(kp, world, [0])
+    fore = world[9] - world[7]
+    np.testing.assert_allclose(out[7], kp[5] + UPPER_ARM_TORSO * 100.0 * np.array([0.28, 0.0]) / np.hypot(0.28, 0.02),
+                               atol=0.01)
+    np.testing.assert_allclose(out[9], out[7] + FOREARM_TORSO * 100.0 * fore[:2] / np.linalg.norm(fore), atol=0.01)
+    keep = [i for i in range(17) if i not in (7, 9)]
+    np.testing.assert_allclose(out[keep], kp[keep])
+    long_enough = kp.copy()
+    long_enough[9] = [360, 100]  # the forearm 45 px: 0.9 of the 50 its 3D direction implies
+    unsure = conf.copy()
+    unsure[9] = 0.3
+    assert arms_read_short(long_enough, conf, world) == [] and arms_read_short(kp, unsure, world) == []
+
+
+def test_an_armoured_figure_whose_arms_the_detector_reads_short_keeps_them_out_to_the_side():
+    """The three.js Soldier (a faceless armoured game character in a T-pose, fixture scan) as the
+    protocol's 768 px photo: MediaPipe's 2D right wrist lands half way along the forearm (0.54 of the
+    length its 3D landmarks imply) and the fit swung that forearm 44 deg backwards to match, a beam
+    from the side. Redrawn along the 3D landmarks, it stays within 25 deg of the image plane, and the
+    run says what it guessed."""
+    import tempfile
+    from pathlib import Path
+
+    pytest.importorskip("anny", reason="the 'anny' package is not installed")
+    pytest.importorskip("mediapipe", reason="MediaPipe is not installed")
+    scan = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "scans" / "threejs_soldier"
+    if not scan.is_dir():
+        pytest.skip(f"fixture scan {scan} not present")
+    torch.set_num_threads(1)
+    from humanvdm_core.body_prior import build_body_proxy
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.io import write_png
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    cam = orbit_cameras(1, 768, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
+    with tempfile.TemporaryDirectory() as tmp:
+        photo = Path(tmp) / "soldier.png"
+        write_png(photo, render_views(normalize_scan(load_scan(scan), yaw_deg=180.0), cam, (1.0, 1.0, 1.0)).rgba[0])
+        proxy = build_body_proxy(photo, geometry="body")
+    c = proxy.coco17
+    for elbow, wrist in ((7, 9), (8, 10)):
+        fore = c[wrist] - c[elbow]
+        out_of_plane = np.degrees(np.arcsin(abs(fore[2]) / np.linalg.norm(fore)))
+        assert out_of_plane < 25.0, (elbow, out_of_plane)  # the right forearm was 44 deg out before
+    assert any("soldier.png: the pose model's 2D right arm is much shorter than its 3D landmarks show" in w
+               for w in proxy.warnings), proxy.warnings
+
+
 def test_onto_the_head_moves_only_wrists_on_the_head():
     """onto_the_head on hand-made landmarks (camera axes: x right, y down, z away from the camera): a
     wrist beside the face but 0.25 m before the nose moves back to the head's middle, as does one on

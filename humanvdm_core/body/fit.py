@@ -147,6 +147,14 @@ ARM_OUT_DEG = 35.0
 ARM_STRAIGHT_DEG = 35.0
 ARM_SEEN_LENGTH = 0.4
 ARM_CONFIDENCE = 0.5
+# An arm the detector reads short (see arms_read_short): a bone whose 3D landmarks lie at least
+# ARM_IN_PLANE in the image plane (the in-plane share of its unit direction) while its 2D keypoints
+# show less than ARM_READ_SHORT of the length that direction implies, the bone's length taken as
+# UPPER_ARM_TORSO (FOREARM_TORSO) of the 2D torso's (typical adult proportions).
+ARM_IN_PLANE = 0.7
+ARM_READ_SHORT = 0.6
+UPPER_ARM_TORSO = 0.6
+FOREARM_TORSO = 0.5
 ARMS = ((5, 7, 9), (6, 8, 10))  # COCO-17 shoulder, elbow, wrist: left, right
 # A hand on the head (see hands_on_head): the wrist's 3D landmark within HEAD_TOUCH (metres, across the
 # image plane) of the centre of the nose and the ears, all of them at least HEAD_CONFIDENCE sure.
@@ -380,6 +388,44 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
         out[elbow] = out[shoulder] + upper
         out[wrist] = out[elbow] + fore
     return out.astype(np.float32)
+
+
+def arms_read_short(keypoints: np.ndarray, confidences: np.ndarray, world: np.ndarray) -> list[int]:
+    """The arms (indices into :data:`ARMS`: 0 left, 1 right) whose 2D ``keypoints`` (17, 2 pixels) the
+    detector's own 3D landmarks ``world`` (17, 3, camera axes) contradict: an upper arm or forearm
+    whose 3D direction lies in the image plane (:data:`ARM_IN_PLANE`) while its 2D length is under
+    :data:`ARM_READ_SHORT` of what that direction and the torso's 2D length imply, its joints at least
+    :data:`ARM_CONFIDENCE` sure (``confidences``). On the photos and renders here the ratio is 0.71 or
+    more; on an armoured game character in a T-pose MediaPipe puts the 2D wrists on the elbows and the
+    elbows on the shoulders (0.08-0.38), while its 3D arms and the person's mask reach out sideways."""
+    torso = _torso_length(keypoints)
+    out = []
+    for arm, (shoulder, elbow, wrist) in enumerate(ARMS):
+        if min(confidences[[shoulder, elbow, wrist]]) < ARM_CONFIDENCE or torso <= 0:
+            continue
+        for (a, b), share in (((shoulder, elbow), UPPER_ARM_TORSO), ((elbow, wrist), FOREARM_TORSO)):
+            d = np.asarray(world[b], np.float64) - np.asarray(world[a], np.float64)
+            in_plane = float(np.hypot(d[0], d[1]) / max(np.linalg.norm(d), 1e-9))
+            seen = float(np.linalg.norm(keypoints[b] - keypoints[a]))
+            if in_plane >= ARM_IN_PLANE and seen < ARM_READ_SHORT * share * torso * in_plane:
+                out.append(arm)
+                break
+    return out
+
+
+def rebuild_arms(keypoints: np.ndarray, world: np.ndarray, arms: Sequence[int]) -> np.ndarray:
+    """``keypoints`` (17, 2 pixels) with the elbow and wrist of each of ``arms`` (indices into
+    :data:`ARMS`) redrawn from the shoulder along the detector's 3D bone directions (``world``, camera
+    axes, their x and y), the upper arm :data:`UPPER_ARM_TORSO` and the forearm :data:`FOREARM_TORSO`
+    of the torso's 2D length (a bone out of the image plane shows shorter, as its direction says)."""
+    out = np.asarray(keypoints, np.float64).copy()
+    torso = _torso_length(out)
+    for arm in arms:
+        shoulder, elbow, wrist = ARMS[arm]
+        for (a, b), share in (((shoulder, elbow), UPPER_ARM_TORSO), ((elbow, wrist), FOREARM_TORSO)):
+            d = np.asarray(world[b], np.float64) - np.asarray(world[a], np.float64)
+            out[b] = out[a] + share * torso * d[:2] / max(np.linalg.norm(d), 1e-9)
+    return out.astype(np.asarray(keypoints).dtype)
 
 
 def _sure_ears(confidences: np.ndarray) -> list[int]:
