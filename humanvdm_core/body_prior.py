@@ -37,7 +37,10 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    directions, the mask one-sided so clothing never stretches the body, the torso leaning no further
    than the landmarks show (a lean of theirs under 10 deg counts as upright), an arm held out to the
    side kept in the body's plane, a hand the photo shows on the head touching it, a person standing
-   still kept on straight legs with the feet below the hips).
+   still kept on straight legs with the feet below the hips). An arm whose 2D keypoints the detector's
+   own in-plane 3D landmarks contradict (far shorter: :func:`humanvdm_core.body.fit.arms_read_short`,
+   armour or a drawn figure) is first redrawn along those landmarks (:func:`~humanvdm_core.body.fit.rebuild_arms`),
+   with a warning.
 5. Geometry ``clothed`` (default): the clothed proxy (:func:`humanvdm_core.clothed_proxy.build_clothed_proxy`)
    -- a closed surface whose input view is the person's whole mask, the body's depth carried out to
    the silhouette and inflated where the body does not reach (loose clothing, hair, hats, held
@@ -55,8 +58,9 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    azimuth-0 frame is then REPLACED by the preprocessed input view itself, so the input view is exact.
 8. Warnings (``BodyProxy.warnings``, each naming the photo): what the stand-in had to guess -- legs or
    hands hidden, a seated pose (the seat is not in the mask), a hand on the head (placed touching it;
-   its arm then keeps its fitted depth before the torso in the proxy), a forearm reaching towards or away from
-   the camera (its depth, and what it holds), much of the silhouette outside the body, the facing --
+   its arm then keeps its fitted depth in the proxy), a forearm reaching towards or away from
+   the camera (its depth, and what it holds), an arm the pose model read short, much of the silhouette
+   outside the body, the facing --
    plus the detector's own (e.g. a second person).
 
 ``frames`` is (N, size, size, 4) float32 (RGB sRGB values over ``background``), ``cameras`` a
