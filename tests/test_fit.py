@@ -113,6 +113,26 @@ def test_single_frame_fit(orbit):
     assert res.reprojection_px[0] < 0.03 * cams.height
 
 
+def test_a_frame_with_a_tiny_silhouette_does_not_stop_a_multi_frame_fit(orbit):
+    """Each frame's silhouette gives the fit CONTOUR_POINTS contour samples, however short its contour:
+    a frame whose mask is a few pixels (a person the segmentation nearly lost) once made fit-smpl fail
+    on the whole orbit ("all input arrays must have the same shape", the Soldier's orbit)."""
+    from humanvdm_core.body.fit import CONTOUR_POINTS
+    from testdata.synthetic import body_model
+
+    orbit_dir, _, cams = orbit
+    frames = read_frames(orbit_dir, indices=[20, 5])
+    obs, failed = observe_frames(frames, [0, 1])
+    assert len(obs) == 2, failed
+    obs[0].index, obs[1].index = 20, 5
+    tiny = np.zeros_like(obs[1].mask)
+    tiny[190:193, 190:193] = 1.0
+    obs[1].mask = tiny
+    res = fit_body(body_model(), cams, obs, FitOptions(iterations=5))
+    assert res.frame_indices == [20, 5]
+    assert _Problem(body_model(), cams, obs, FitOptions()).contours.shape == (2, CONTOUR_POINTS, 2)
+
+
 def test_left_right_swaps_are_resolved(orbit):
     """Detections with left and right exchanged are put back by the 3D estimate."""
     from humanvdm_core.body.fit import FrameObservation

@@ -522,7 +522,7 @@ def _silhouette_data(mask: np.ndarray, size: int, rng: np.random.Generator,
     pts = np.concatenate([c[:, 0, :] for c in contours], 0).astype(np.float32) if contours else np.zeros((0, 2))
     if len(pts) == 0:
         pts = np.full((1, 2), size / 2.0, np.float32)
-    take = np.linspace(0, len(pts) - 1, min(CONTOUR_POINTS, len(pts))).round().astype(np.int64)
+    take = np.linspace(0, len(pts) - 1, CONTOUR_POINTS).round().astype(np.int64)  # repeats on a short contour
     return dt, (pts[take] + 0.5) / size
 
 
