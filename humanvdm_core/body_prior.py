@@ -603,8 +603,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
         sides = " and ".join(("left", "right")[a] for a in short)
         warnings.append(f"{name}: the pose model's 2D {sides} arm{'s' if len(short) > 1 else ''} "
                         f"{'are' if len(short) > 1 else 'is'} much shorter than its 3D landmarks show (a costume, "
-                        "armour or a drawn figure?): the arm is fitted along its 3D direction and the silhouette, "
-                        "its length taken from the body's proportions")
+                        "armour or a drawn figure?): fitted along the 3D landmarks and the silhouette instead, "
+                        "at the body's own proportions")
     obs = FrameObservation(0, keypoints, view.confidences, fit_mask.copy(), list(view.warnings),
                            world_keypoints=view.world_keypoints, unseen=view.unseen)
     fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),

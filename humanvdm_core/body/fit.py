@@ -396,8 +396,9 @@ def arms_read_short(keypoints: np.ndarray, confidences: np.ndarray, world: np.nd
     whose 3D direction lies in the image plane (:data:`ARM_IN_PLANE`) while its 2D length is under
     :data:`ARM_READ_SHORT` of what that direction and the torso's 2D length imply, its joints at least
     :data:`ARM_CONFIDENCE` sure (``confidences``). On the photos and renders here the ratio is 0.71 or
-    more; on an armoured game character in a T-pose MediaPipe puts the 2D wrists on the elbows and the
-    elbows on the shoulders (0.08-0.38), while its 3D arms and the person's mask reach out sideways."""
+    more; on an armoured game character in a T-pose MediaPipe puts a 2D wrist half way along the
+    forearm (0.54) or the wrists on the elbows (0.08-0.38, another render size), while its 3D arms and
+    the person's mask reach out sideways."""
     torso = _torso_length(keypoints)
     out = []
     for arm, (shoulder, elbow, wrist) in enumerate(ARMS):
