@@ -273,6 +273,25 @@ def _knee_bends_deg(c: np.ndarray) -> list[float]:
 
 
 @pytest.mark.slow
+def _scan_photo(name: str, size: int, yaw_deg: float = 0.0):
+    """The fixture scan ``name`` as the protocol's photo (azimuth 0, 10 deg above, over white): its (size,
+    size, 4) RGBA and its camera. Skips without anny, MediaPipe or the fixture; torch on one thread."""
+    from pathlib import Path
+
+    pytest.importorskip("anny", reason="the 'anny' package is not installed")
+    pytest.importorskip("mediapipe", reason="MediaPipe is not installed")
+    scan = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "scans" / name
+    if not scan.is_dir():
+        pytest.skip(f"fixture scan {scan} not present")
+    torch.set_num_threads(1)
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    cam = orbit_cameras(1, size, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
+    return render_views(normalize_scan(load_scan(scan), yaw_deg=yaw_deg), cam, (1.0, 1.0, 1.0)).rgba[0], cam
+
+
 def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
     """RenderPeople Eric (a real scan, T-pose, trousers) as the photo: MediaPipe reads his straight legs
     as knees bent about 35 deg with the feet behind the hips (his 2D shins are a fifth shorter than
@@ -280,22 +299,10 @@ def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
     the protocol's 768 px photo 28 / 20 deg and 9 cm). The stance term
     of a photo of a person standing still keeps the knees within a few degrees of straight and the
     feet below the hips (here 11 / 10 deg and 0.4 cm)."""
-    from pathlib import Path
-
-    pytest.importorskip("anny", reason="the 'anny' package is not installed")
-    pytest.importorskip("mediapipe", reason="MediaPipe is not installed")
-    scan = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "scans" / "renderpeople_rp_eric_rigged_001"
-    if not scan.is_dir():
-        pytest.skip(f"fixture scan {scan} not present")
-    torch.set_num_threads(1)
     from humanvdm_core.body.fit import observe_frames
-    from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
 
-    cam = orbit_cameras(1, 576, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
-    rgba = render_views(normalize_scan(load_scan(scan)), cam, (1.0, 1.0, 1.0)).rgba
-    obs, failed = observe_frames(rgba, [0])
+    rgba, cam = _scan_photo("renderpeople_rp_eric_rigged_001", 576)
+    obs, failed = observe_frames(rgba[None], [0])
     assert obs and not failed, failed
     for options, still in (({}, True), ({"stance_weight": 0.0}, False)):
         c = _fit(obs[0], cam, **options).output.coco17[0].numpy().astype(np.float64)
@@ -413,22 +420,13 @@ def test_an_armoured_figure_whose_arms_the_detector_reads_short_keeps_them_out_t
     import tempfile
     from pathlib import Path
 
-    pytest.importorskip("anny", reason="the 'anny' package is not installed")
-    pytest.importorskip("mediapipe", reason="MediaPipe is not installed")
-    scan = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "scans" / "threejs_soldier"
-    if not scan.is_dir():
-        pytest.skip(f"fixture scan {scan} not present")
-    torch.set_num_threads(1)
     from humanvdm_core.body_prior import build_body_proxy
-    from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.io import write_png
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
 
-    cam = orbit_cameras(1, 768, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
+    rgba, _ = _scan_photo("threejs_soldier", 768, yaw_deg=180.0)  # the Soldier faces -Z
     with tempfile.TemporaryDirectory() as tmp:
         photo = Path(tmp) / "soldier.png"
-        write_png(photo, render_views(normalize_scan(load_scan(scan), yaw_deg=180.0), cam, (1.0, 1.0, 1.0)).rgba[0])
+        write_png(photo, rgba)
         proxy = build_body_proxy(photo, geometry="body")
     c = proxy.coco17
     for elbow, wrist in ((7, 9), (8, 10)):
