@@ -268,6 +268,49 @@ def test_arms_held_out_to_the_side_stay_in_the_frontal_plane(photo):
             assert min(err) > 12.0, err
 
 
+@pytest.mark.slow
+def test_an_arm_held_out_whose_wrist_is_read_short_stays_in_the_image_plane(photo):
+    """The A-pose photo with both 2D wrists moved 30 % of the forearm towards the elbow (a sleeve, a
+    glove or armour hides the wrist and the detector reads the arm short, as on the three.js Soldier):
+    the fit swung the forearms 25-30 deg back out of the image plane to shorten them. With the
+    held-out arm's keypoints bounding it from inside only, the forearms stay within a few degrees of
+    the truth."""
+    from dataclasses import replace
+
+    obs, cam, truth, _ = photo("a-pose")
+    keypoints = obs.keypoints.copy()
+    for elbow, wrist in ((7, 9), (8, 10)):
+        keypoints[wrist] += 0.3 * (keypoints[elbow] - keypoints[wrist])
+    short = replace(obs, keypoints=keypoints)
+    forearms = ((7, 9), (8, 10))
+    for reach in (True, False):
+        c = _fit(short, cam, arm_reach_past_keypoints=reach).output.coco17[0].numpy().astype(np.float64)
+        err = [abs(_forward_deg(c, a, b) - _forward_deg(truth, a, b)) for a, b in forearms]
+        if reach:
+            assert max(err) < 6.0, err  # measured 1-2 deg
+        else:  # without it the short wrists swing the forearms out of the plane (so this test can tell)
+            assert min(err) > 15.0, err  # measured 25-29 deg
+
+
+def test_reach_directions_only_for_the_elbows_and_wrists_of_arms_held_out():
+    """reach_directions on hand-made keypoints: the left arm out to the side gets its shoulder -> wrist
+    direction at the elbow and the wrist; the hanging right arm, and every other joint, get none."""
+    from humanvdm_core.body.fit import held_out_arms, reach_directions
+
+    kp = np.zeros((17, 2))
+    kp[[5, 6, 11, 12]] = [[120, 100], [80, 100], [115, 200], [85, 200]]  # shoulders, hips: torso 100 px
+    kp[[7, 9]] = [[170, 120], [220, 140]]  # left arm out and down (A-pose)
+    kp[[8, 10]] = [[78, 150], [76, 200]]  # right arm hanging
+    conf = np.ones(17)
+    assert held_out_arms(kp, conf) == [0]
+    d = reach_directions(kp, conf)
+    line = (kp[9] - kp[5]) / np.linalg.norm(kp[9] - kp[5])
+    np.testing.assert_allclose(d[[7, 9]], [line, line])
+    assert not np.delete(d, [7, 9], axis=0).any()
+    conf[9] = 0.2  # an unsure wrist: not held out
+    assert held_out_arms(kp, conf) == [] and not reach_directions(kp, conf).any()
+
+
 def _knee_bends_deg(c: np.ndarray) -> list[float]:
     return [_angle_deg(c[k] - c[h], c[a] - c[k]) for h, k, a in ((11, 13, 15), (12, 14, 16))]
 

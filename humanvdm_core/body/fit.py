@@ -22,7 +22,12 @@ Contract:
   :class:`FitOptions`:
 
   * keypoints: confidence-weighted robust (Cauchy, scale ``KEYPOINT_SIGMA`` of the image height)
-    distance between the model's projected ``coco17`` and the detections;
+    distance between the model's projected ``coco17`` and the detections. In a single photo the
+    elbow and wrist of an arm held out to the side (:func:`held_out_arms`) bound the arm from inside
+    only (``FitOptions.arm_reach_past_keypoints``): the model's joint may lie further out along the
+    shoulder -> wrist line than the detection, free (a sleeve, a glove or armour hides the joint and
+    the detector reads the arm short; the fit then swung it out of the image plane to shorten it),
+    and the one-sided silhouette bounds how far;
   * bone directions (``bone_direction_weight``): for the bones of :data:`BONES` (upper arms,
     forearms, thighs, shins, shoulder and hip lines, spine, neck) the model's 3D bone turned into
     each frame's camera against the same bone of the detector's ``world_keypoints``: mean of
@@ -139,7 +144,7 @@ TORSO_FREE_DEG = 1.5  # a torso within this angle of the arc from upright to the
 TORSO_NOISE_DEG = 10.0  # the detector's torso this close to upright counts as upright ...
 TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (between: a linear ramp)
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
-# An arm held out to the side (see frontal_arms): in the image, the upper arm at least ARM_OUT_DEG from
+# An arm held out to the side (see held_out_arms): in the image, the upper arm at least ARM_OUT_DEG from
 # hanging straight down, the forearm within ARM_STRAIGHT_DEG of the upper arm's line, the upper arm at
 # least ARM_SEEN_LENGTH of the torso's length (not pointing at the camera), its three joints at least
 # ARM_CONFIDENCE sure.
@@ -216,6 +221,8 @@ class FitOptions:
     hands_on_head: bool = True
     # a single photo of a person standing still (standing_still): knees straight, feet below the hips
     stance_weight: float = STANCE_WEIGHT
+    # a single photo: an arm held out to the side may reach past its 2D elbow and wrist (reach_directions)
+    arm_reach_past_keypoints: bool = True
 
     def check(self) -> None:
         if self.iterations < 1 or self.refine_iterations < 0:
@@ -352,34 +359,55 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
 
 
+def held_out_arms(keypoints: np.ndarray, confidences: np.ndarray) -> list[int]:
+    """The arms (indices into :data:`ARMS`: 0 left, 1 right) that the 2D ``keypoints`` (17, 2 pixels,
+    ``confidences`` (17,)) show held out to the side: the upper arm at least :data:`ARM_OUT_DEG` from
+    hanging straight down, the forearm within :data:`ARM_STRAIGHT_DEG` of the upper arm's line, the
+    upper arm at least :data:`ARM_SEEN_LENGTH` of the torso's length (not pointing at the camera) and
+    its three joints at least :data:`ARM_CONFIDENCE` sure. A T-pose, an A-pose, raised arms, a wave."""
+    torso = _torso_length(keypoints)
+    out = []
+    for arm, (shoulder, elbow, wrist) in enumerate(ARMS):
+        upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
+        if (_angle_deg(upper_2d, IMAGE_DOWN) >= ARM_OUT_DEG and _angle_deg(upper_2d, fore_2d) <= ARM_STRAIGHT_DEG
+                and np.linalg.norm(upper_2d) >= ARM_SEEN_LENGTH * torso
+                and min(confidences[[shoulder, elbow, wrist]]) >= ARM_CONFIDENCE):
+            out.append(arm)
+    return out
+
+
+def reach_directions(keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarray:
+    """(17, 2) per COCO-17 joint the image direction along which the model's joint may lie past its
+    detection at no cost (see the module docstring): for the elbow and the wrist of each arm held out
+    to the side (:func:`held_out_arms`) the unit vector from the shoulder to the wrist in ``keypoints``
+    (17, 2 pixels); zero for every other joint."""
+    out = np.zeros((17, 2), np.float64)
+    for arm in held_out_arms(keypoints, confidences):
+        shoulder, elbow, wrist = ARMS[arm]
+        line = np.asarray(keypoints[wrist], np.float64) - np.asarray(keypoints[shoulder], np.float64)
+        if np.linalg.norm(line) > 1e-6:
+            out[[elbow, wrist]] = line / np.linalg.norm(line)
+    return out
+
+
 def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
                  up: np.ndarray) -> np.ndarray:
     """The detector's 3D landmarks ``world`` (17, 3, camera axes) with every arm held out to the side
-    turned into the body's frontal plane (the plane through the 3D shoulder line and ``up``, the
-    world's up in the camera's axes); bone lengths are kept and nothing else moves.
+    (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``) turned into the
+    body's frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the
+    camera's axes); bone lengths are kept and nothing else moves.
 
-    An arm is held out to the side when its 2D ``keypoints`` (17, 2 pixels, ``confidences``) show the
-    upper arm at least :data:`ARM_OUT_DEG` from hanging straight down, the forearm within
-    :data:`ARM_STRAIGHT_DEG` of the upper arm's line, the upper arm at least :data:`ARM_SEEN_LENGTH`
-    of the torso's length and its three joints at least :data:`ARM_CONFIDENCE` sure. MediaPipe tilts
-    such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg elevation: true
-    -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a T-pose, an
-    A-pose, a wave). Arms that hang, bend (hands on the hips, holding a cup) or point at the camera
-    keep their depth."""
+    MediaPipe tilts such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg
+    elevation: true -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a
+    T-pose, an A-pose, a wave). Arms that hang, bend (hands on the hips, holding a cup) or point at the
+    camera keep their depth."""
     out = np.asarray(world, np.float64).copy()
     normal = np.cross(out[5] - out[6], np.asarray(up, np.float64))
     if np.linalg.norm(normal) < 1e-6:
         return out.astype(np.float32)
     normal /= np.linalg.norm(normal)
-    torso = _torso_length(keypoints)
-    for shoulder, elbow, wrist in ARMS:
-        upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
-        held_out = (_angle_deg(upper_2d, IMAGE_DOWN) >= ARM_OUT_DEG
-                    and _angle_deg(upper_2d, fore_2d) <= ARM_STRAIGHT_DEG
-                    and np.linalg.norm(upper_2d) >= ARM_SEEN_LENGTH * torso
-                    and min(confidences[[shoulder, elbow, wrist]]) >= ARM_CONFIDENCE)
-        if not held_out:
-            continue
+    for arm in held_out_arms(keypoints, confidences):
+        shoulder, elbow, wrist = ARMS[arm]
         bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
         flat = [b - (b @ normal) * normal for b in bones]
         if min(np.linalg.norm(f) for f in flat) < 1e-6:
@@ -576,6 +604,7 @@ class _Problem:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
+        self.reach_past = options.arm_reach_past_keypoints and sum(o.has_keypoints for o in observations) == 1
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)
         self.bone_end = torch.as_tensor(end, dtype=dt)
@@ -596,6 +625,8 @@ class _Problem:
         dt = self.model.dtype
         self.kp = torch.as_tensor(np.stack(kps), dtype=dt)
         self.conf = torch.as_tensor(np.stack(cfs), dtype=dt)
+        reach = [reach_directions(k, c) if self.reach_past else np.zeros((17, 2)) for k, c in zip(kps, cfs, strict=True)]
+        self.reach = torch.as_tensor(np.stack(reach), dtype=dt)  # (F, 17, 2)
         dirs, confs = zip(*[self._observed_bones(*_swap_pairs(s, w, c)) for w, c, s in zip(
             self.raw_world, self.raw_world_conf, self.swapped_3d, strict=True)], strict=True)
         self.bone_dir = torch.as_tensor(np.stack(dirs), dtype=dt)  # (F, B, 3) unit
@@ -655,7 +686,9 @@ class _Problem:
     # ----- loss terms
     def keypoint_term(self, coco17: torch.Tensor, joints: Sequence[int] | None = None) -> torch.Tensor:
         proj, _ = project(coco17, self.w2c, self.K)
-        r2 = ((proj - self.kp) ** 2).sum(-1) / (self.height ** 2)
+        residual = proj - self.kp
+        past = (residual * self.reach).sum(-1, keepdim=True).clamp(min=0.0)  # beyond the detection: free
+        r2 = ((residual - past * self.reach) ** 2).sum(-1) / (self.height ** 2)
         conf = self.conf if joints is None else self.conf[:, list(joints)]
         r2 = r2 if joints is None else r2[:, list(joints)]
         total = conf.sum()
