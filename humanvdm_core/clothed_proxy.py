@@ -291,10 +291,15 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
         side = np.clip(np.floor(result.rgba[0, ..., 1] * 3.0).astype(np.int64) - 1, -1, 1)
         return np.where(result.depth[0] > 0, side, 0)
 
+    # the trunk's depths likewise, empty where the rasteriser gave a depth the body does not have (a stray
+    # pixel 4 m behind the body once pushed the arm before it as far back: contract step 3)
+    trunk_front = trunk.depth[0].astype(np.float64)
+    trunk_front = np.where((trunk_front >= lo) & (trunk_front <= hi), trunk_front, 0.0)
+    trunk_back = np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)
+    trunk_back = np.where((trunk_back >= lo) & (trunk_back <= hi), trunk_back, 0.0)
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
-            "back_side": side_map(far), "trunk_front": trunk.depth[0].astype(np.float64),
-            "trunk_back": np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)}
+            "back_side": side_map(far), "trunk_front": trunk_front, "trunk_back": trunk_back}
 
 
 # ----------------------------------------------------------------------------- PDE helpers

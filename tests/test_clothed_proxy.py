@@ -759,6 +759,44 @@ def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
     assert abs(float(np.median(z[torso])) - 0.15) < 0.03
 
 
+def test_a_stray_trunk_depth_from_the_rasteriser_is_not_the_arms_reach_limit(monkeypatch):
+    """The rasteriser once gave one pixel of the body-without-arms pass a depth 4 m behind the body (a
+    seated subject's fit): as the nearest trunk pixel of a whole forearm beside it, it became that
+    forearm's reach limit and pushed it 1.8 m back, a fin from the side. body_maps' trunk depths now
+    hold only depths the body has: the same "arm" and "torso" as above with such a pixel injected under
+    the arm's tip keep it out of ``trunk_front``, and the proxy keeps the arm at ARM_REACH."""
+    from humanvdm_core import clothed_proxy, render
+    from humanvdm_core.clothed_proxy import ARM_REACH
+
+    real_render, real_maps = render.render_views, clothed_proxy.body_maps
+    calls: list = []
+    maps: list = []
+
+    def stray(mesh, cameras, background=(1.0, 1.0, 1.0), samples=render.DEFAULT_SAMPLES):
+        out = real_render(mesh, cameras, background, samples)
+        calls.append(out)
+        if len(calls) == 4:  # body_maps' third pass: the body without its arms, nearest depth
+            near = calls[1].depth[0]  # its first pass: the arm's tip is its nearest pixel
+            tip = np.unravel_index(np.argmin(np.where(near > 0, near, np.inf)), near.shape)
+            out.depth[0][tip] += 4.0
+        return out
+
+    def spy(*args, **kwargs):
+        maps.append(real_maps(*args, **kwargs))
+        return maps[-1]
+
+    monkeypatch.setattr(render, "render_views", stray)
+    monkeypatch.setattr(clothed_proxy, "body_maps", spy)
+    proxy = _proxy_of_torso_with_arm(0.08, 0.15 + 0.3)
+    assert len(calls) >= 4 and len(maps) == 1  # the mask's render, then body_maps' passes
+    # the camera stands 3.2 from the torso's axis: the body spans depths 2.45 (the arm's tip) to 3.35
+    trunk = maps[0]["trunk_front"]
+    assert trunk.max() <= 3.35 + 0.02, trunk.max()  # was the injected depth, 4 m behind the arm's tip
+    z = proxy.mesh.vertices[:, 2]
+    assert z.min() >= -0.15 - 0.02, z.min()
+    assert 0.15 + ARM_REACH - 0.03 <= z.max() <= 0.15 + ARM_REACH + 0.02, z.max()
+
+
 def test_an_arm_whose_hand_a_contact_places_keeps_its_fitted_depth():
     """An arm placed by a contact (a hand on the head, ``placed_arms``) is not pulled back to ARM_REACH,
     whether the torso (an elbow before the chest) or the head (a forearm before the face) is behind it:
