@@ -269,11 +269,15 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     w2c = camera.w2c[0]
     z = np.asarray(vertices, np.float64) @ w2c[2, :3] + w2c[2, 3]
     lo, hi = float(z.min()) - 0.01, float(z.max()) + 0.01
+
+    def within(depth: np.ndarray) -> np.ndarray:
+        """Where ``depth`` is one the body has (the rasteriser can give a stray pixel metres off)."""
+        return (depth >= lo) & (depth <= hi)
+
     back = np.where(far.depth[0] > 0, 2.0 * c - far.depth[0], 0.0)
     # a pixel is the body's where both passes saw it at a depth the body has (a stray rasterised depth
     # outside the body's range, or the bent triangles of the far pass missing it, is left to the extension)
-    covered = ((near.depth[0] > 0) & (far.depth[0] > 0) & (near.depth[0] >= lo) & (near.depth[0] <= hi)
-               & (back >= lo) & (back <= hi))
+    covered = (near.depth[0] > 0) & (far.depth[0] > 0) & within(near.depth[0]) & within(back)
 
     # the body without its arms and hands: what lies behind an arm held in front of the body
     limb = np.isin(parts, [PARTS.index("arms"), PARTS.index("hands")])
@@ -293,10 +297,9 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
     # the trunk's depths likewise, empty where the rasteriser gave a depth the body does not have (a stray
     # pixel 4 m behind the body once pushed the arm before it as far back: contract step 3)
-    trunk_front = trunk.depth[0].astype(np.float64)
-    trunk_front = np.where((trunk_front >= lo) & (trunk_front <= hi), trunk_front, 0.0)
+    trunk_front = np.where(within(trunk.depth[0]), trunk.depth[0], 0.0).astype(np.float64)
     trunk_back = np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)
-    trunk_back = np.where((trunk_back >= lo) & (trunk_back <= hi), trunk_back, 0.0)
+    trunk_back = np.where(within(trunk_back), trunk_back, 0.0)
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
             "back_side": side_map(far), "trunk_front": trunk_front, "trunk_back": trunk_back}
