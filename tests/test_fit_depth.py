@@ -315,7 +315,6 @@ def _knee_bends_deg(c: np.ndarray) -> list[float]:
     return [_angle_deg(c[k] - c[h], c[a] - c[k]) for h, k, a in ((11, 13, 15), (12, 14, 16))]
 
 
-@pytest.mark.slow
 def _scan_photo(name: str, size: int, yaw_deg: float = 0.0):
     """The fixture scan ``name`` as the protocol's photo (azimuth 0, 10 deg above, over white): its (size,
     size, 4) RGBA and its camera. Skips without anny, MediaPipe or the fixture; torch on one thread."""
@@ -335,6 +334,7 @@ def _scan_photo(name: str, size: int, yaw_deg: float = 0.0):
     return render_views(normalize_scan(load_scan(scan), yaw_deg=yaw_deg), cam, (1.0, 1.0, 1.0)).rgba[0], cam
 
 
+@pytest.mark.slow
 def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
     """RenderPeople Eric (a real scan, T-pose, trousers) as the photo: MediaPipe reads his straight legs
     as knees bent about 35 deg with the feet behind the hips (his 2D shins are a fifth shorter than
@@ -454,6 +454,7 @@ def test_arms_read_short_tells_a_detector_contradicting_itself_from_foreshorteni
     assert arms_read_short(long_enough, conf, world) == [] and arms_read_short(kp, unsure, world) == []
 
 
+@pytest.mark.slow
 def test_an_armoured_figure_whose_arms_the_detector_reads_short_keeps_them_out_to_the_side():
     """The three.js Soldier (a faceless armoured game character in a T-pose, fixture scan) as the
     protocol's 768 px photo: MediaPipe's 2D right wrist lands half way along the forearm (0.54 of the
