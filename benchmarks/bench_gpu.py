@@ -23,9 +23,17 @@ SV3D ones first, so that gsplat's first-use compile, started beside this script,
   0.2 (1 - SSIM), backward, Adam over means/quats/scales/opacities/colours -- median seconds at 200k and
   500k (its ``max_gaussians``) Gaussians, and ``30000 x`` that: the rasterizer's and the loss's share of
   a ``full`` splat-optimize run (the MLP decoder, the skinning and densification are not in it).
+- ``stage`` (not in the default ``--sections``; needs ``--orbit DIR --body FILE``): the real stages,
+  each its own process as the scheduler runs it -- ``upscale`` and ``interpolate`` (embedded backends)
+  on a ``diffuse`` orbit, then ``splat-optimize`` with the ``full`` preset (gsplat when it compiled) for
+  ``--iterations`` steps (0: the preset's 30,000) on those frames and the ``fit-smpl`` body (written
+  with ``uv_resolution`` 569, the preset's, so no body model is needed there): each stage's seconds,
+  the training's seconds per step and its 30,000-step estimate, the Gaussian count and the training
+  PSNR; the stages' logs and the turntable GIF is copied beside ``--out``.
 
 Writes ``--out`` (default ``benchmarks/results/gpu.json``) with the device named.
-Run: ``python -m benchmarks.bench_gpu [--gsplat-ready /tmp/gsplat_ready] [--out F] [--smoke]``.
+Run: ``python -m benchmarks.bench_gpu [--gsplat-ready /tmp/gsplat_ready] [--out F] [--smoke]``, or
+``--sections stage --orbit DIR --body body.npz [--iterations N]``.
 """
 
 from __future__ import annotations
@@ -299,6 +307,72 @@ def train_section(dev, backends: list[str], smoke: bool) -> dict:
     return out
 
 
+def _stage(name: str, argv: list[str], log_path: Path) -> tuple[float, str]:
+    """Run stage ``name`` as its own process (``python -m stages.NAME ARGV``): wall seconds and its log."""
+    import subprocess
+
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", f"stages.{name.replace('-', '_')}", *argv], cwd=REPO,
+                          capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    log_path.write_text(proc.stdout + proc.stderr)
+    if proc.returncode != 0:
+        raise RuntimeError(f"stage {name} failed ({proc.returncode}): {(proc.stdout + proc.stderr)[-1500:]}")
+    return wall, proc.stdout + proc.stderr
+
+
+def stage_section(orbit: Path, body: Path, iterations: int, out_dir: Path, smoke: bool) -> dict:
+    """upscale -> interpolate -> splat-optimize (``full``) as the pipeline runs them; see the docstring."""
+    import re
+    import shutil
+    import tempfile
+
+    work = Path(tempfile.mkdtemp(prefix="bench_gpu_stage_"))
+    preset = "tiny" if smoke else "full"
+    out: dict = {"orbit": str(orbit), "preset": preset, "stages": {}}
+    logs = out_dir / "gpu_stage_logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    out["stages"]["upscale_s"] = round(_stage("upscale", [
+        "--frames", str(orbit), "--out-frames", str(work / "up"), "--target-size", "128" if smoke else "1080"],
+        logs / "upscale.log")[0], 1)
+    out["stages"]["interpolate_s"] = round(_stage("interpolate", [
+        "--frames", str(work / "up"), "--out-frames", str(work / "interp")], logs / "interpolate.log")[0], 1)
+    argv = ["--frames", str(work / "interp"), "--body", str(body), "--orbit", str(orbit),
+            "--out-gaussians", str(work / "gaussians"), "--preset", preset]
+    if smoke:  # the tiny preset's UV map is the body file's, so that no body model is needed either
+        import numpy as np
+
+        argv += ["--uv-resolution", str(int(np.load(body)["uv_resolution"]))]
+    if iterations:
+        argv += ["--iterations", str(iterations)]
+    wall, text = _stage("splat-optimize", argv, logs / "splat_optimize.log")
+    out["stages"]["splat_optimize_s"] = round(wall, 1)
+    trained = re.search(r"trained in ([0-9.]+) s", text)
+    header = re.search(r"preset (\w+), template (.*?): (\d+) Gaussians, (\d+) views at (\d+)².*?(\d+) iterations on (\w+)",
+                       text)
+    train_log = json.loads((work / "gaussians" / "train_log.json").read_text())
+    steps = int(header.group(6)) if header else iterations
+    out["splat"] = {"header": header.group(0) if header else None, "train_s": float(trained.group(1)) if trained else None,
+                    "iterations": steps, "num_gaussians": train_log["num_gaussians"],
+                    "initial_gaussians": train_log["initial_gaussians"], "train_psnr": train_log["train_psnr"],
+                    "device": train_log["device"], "densify_steps": train_log["densify_steps"],
+                    "gsplat_missing_warning": "gsplat does not import" in text}
+    # the steady rate: the second half of training (after the last densify step, at the final count), from
+    # the stage's progress lines "iter N/M loss L  T s" (T: seconds since training began)
+    marks = [(int(m.group(1)), float(m.group(2))) for m in re.finditer(r"iter +(\d+)/\d+ +loss \S+ +([0-9.]+) s", text)]
+    late = [(i, t) for i, t in marks if i >= steps // 2]
+    if len(late) >= 2 and late[-1][0] > late[0][0]:
+        per = (late[-1][1] - late[0][1]) / (late[-1][0] - late[0][0])
+        out["splat"]["s_per_step_second_half"] = round(per, 5)
+        out["splat"]["estimate_30000_steps_min"] = round(30000 * per / 60, 1)
+    gif = work / "gaussians" / "turntable.gif"
+    if gif.exists():
+        shutil.copy(gif, out_dir / "gpu_stage_turntable.gif")
+    shutil.rmtree(work, ignore_errors=True)
+    print("stage", out, flush=True)
+    return out
+
+
 def main() -> None:
     import torch
 
@@ -308,6 +382,9 @@ def main() -> None:
     parser.add_argument("--wait", type=float, default=420.0, help="seconds to wait for that file at most")
     parser.add_argument("--sections", default="sv3d,rasterize,train_step")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes (a CPU check of this script)")
+    parser.add_argument("--orbit", type=Path, help="stage section: a diffuse orbit folder (frames, cameras, proxy)")
+    parser.add_argument("--body", type=Path, help="stage section: a fit-smpl body.npz with uv_resolution 569")
+    parser.add_argument("--iterations", type=int, default=0, help="stage section: training steps (0: the preset's)")
     args = parser.parse_args()
     if not torch.cuda.is_available() and not args.smoke:  # `make bench` on a machine without a GPU
         print("bench_gpu: no CUDA device, skipped (results/gpu.json keeps the last GPU run; --smoke runs "
@@ -360,6 +437,9 @@ def main() -> None:
         save()
     run("rasterize", rasterize_section, dev, backends, args.smoke)
     run("train_step", train_section, dev, backends, args.smoke)
+    if "stage" in sections and not (args.orbit and args.body):
+        parser.error("--sections stage needs --orbit and --body")
+    run("stage", stage_section, args.orbit, args.body, args.iterations, Path(args.out).parent, args.smoke)
     print(f"wrote {args.out} in {doc['wall_s']} s", flush=True)
 
 

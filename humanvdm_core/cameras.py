@@ -234,8 +234,11 @@ def sample_bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
     +0.5, the border replicated outside."""
     import cv2
 
+    image = np.ascontiguousarray(image, dtype=np.float32)
     mx = (px[:, 0] - 0.5).astype(np.float32).reshape(-1, 1)
     my = (px[:, 1] - 0.5).astype(np.float32).reshape(-1, 1)
-    out = cv2.remap(np.ascontiguousarray(image, dtype=np.float32), mx, my, interpolation=cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(len(px), -1)
+    chunk = 32000  # cv2.remap's maps hold fewer than SHRT_MAX (32767) rows
+    out = [cv2.remap(image, mx[i:i + chunk], my[i:i + chunk], interpolation=cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(min(chunk, len(px) - i), -1)
+           for i in range(0, len(px), chunk)]
+    return np.concatenate(out) if out else np.zeros((0, image.shape[2] if image.ndim == 3 else 1), np.float32)

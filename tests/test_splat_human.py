@@ -112,6 +112,22 @@ def test_matrix_quaternion_round_trip():
     assert torch.allclose(q2 * torch.sign(q2[:, :1]), q, atol=1e-5)
 
 
+def test_bilinear_samples_for_more_points_than_an_opencv_map_holds():
+    """The ``full`` preset colours 100k+ Gaussians at once: cv2.remap's maps take fewer than 32767 rows."""
+    from humanvdm_core.cameras import sample_bilinear
+
+    h, w = 90, 120
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    image = np.stack([0.01 * xs, 0.02 * ys, 0.003 * xs + 0.004 * ys], axis=-1)  # linear: bilinear is exact
+    rng = np.random.default_rng(0)
+    px = rng.uniform([0.5, 0.5], [w - 0.5, h - 0.5], size=(70_000, 2))
+    x, y = px[:, 0] - 0.5, px[:, 1] - 0.5
+    expected = np.stack([0.01 * x, 0.02 * y, 0.003 * x + 0.004 * y], axis=-1)
+    got = sample_bilinear(image, px)
+    assert got.shape == (70_000, 3)
+    np.testing.assert_allclose(got, expected, atol=2e-3)
+
+
 def test_ssim_identity_and_order():
     torch.manual_seed(0)
     a = torch.rand(1, 3, 32, 32)

@@ -177,7 +177,7 @@ def gsplat_missing_warning() -> str | None:
     if not torch.cuda.is_available() or _gsplat_available():
         return None
     return ("a CUDA GPU is present but gsplat does not import: the splats are rasterized by the PyTorch "
-            "fallback, about 28x slower (the full preset: ~3 h instead of ~7 min on an H100); "
+            "fallback, about 28x slower (the full preset: hours instead of ~9.5 min on an H100); "
             "install gsplat, the cuda extra: pip install -e '.[cuda]' (it compiles its kernels on first use: 90 s "
             "on 16 cores)")
 
