@@ -29,7 +29,7 @@ SV3D ones first, so that gsplat's first-use compile, started beside this script,
   ``--iterations`` steps (0: the preset's 30,000) on those frames and the ``fit-smpl`` body (written
   with ``uv_resolution`` 569, the preset's, so no body model is needed there): each stage's seconds,
   the training's seconds per step and its 30,000-step estimate, the Gaussian count and the training
-  PSNR; the stages' logs and the turntable GIF is copied beside ``--out``.
+  PSNR; the stages' logs and the turntable GIF are copied beside ``--out``.
 
 Writes ``--out`` (default ``benchmarks/results/gpu.json``) with the device named.
 Run: ``python -m benchmarks.bench_gpu [--gsplat-ready /tmp/gsplat_ready] [--out F] [--smoke]``, or
@@ -386,6 +386,8 @@ def main() -> None:
     parser.add_argument("--body", type=Path, help="stage section: a fit-smpl body.npz with uv_resolution 569")
     parser.add_argument("--iterations", type=int, default=0, help="stage section: training steps (0: the preset's)")
     args = parser.parse_args()
+    if "stage" in args.sections.split(",") and not (args.orbit and args.body):
+        parser.error("--sections stage needs --orbit and --body")
     if not torch.cuda.is_available() and not args.smoke:  # `make bench` on a machine without a GPU
         print("bench_gpu: no CUDA device, skipped (results/gpu.json keeps the last GPU run; --smoke runs "
               "tiny sizes on the CPU)")
@@ -437,8 +439,6 @@ def main() -> None:
         save()
     run("rasterize", rasterize_section, dev, backends, args.smoke)
     run("train_step", train_section, dev, backends, args.smoke)
-    if "stage" in sections and not (args.orbit and args.body):
-        parser.error("--sections stage needs --orbit and --body")
     run("stage", stage_section, args.orbit, args.body, args.iterations, Path(args.out).parent, args.smoke)
     print(f"wrote {args.out} in {doc['wall_s']} s", flush=True)
 

@@ -311,6 +311,60 @@ def test_reach_directions_only_for_the_elbows_and_wrists_of_arms_held_out():
     assert held_out_arms(kp, conf) == [] and not reach_directions(kp, conf).any()
 
 
+def test_facing_shoulders_turns_a_slight_turn_back_to_the_camera_and_keeps_a_real_one():
+    """facing_shoulders on hand-made landmarks (camera axes, the world's up = -y) whose 2D keypoints show
+    both arms held out to the side: shoulders turned 4 deg about the vertical come back to facing the
+    camera, the arms turning with them about the shoulders' middle (an arm held out to the side then lies
+    in the image plane); 9 deg keeps half of what lies beyond the noise (4 deg: the ramp from 6 to 12
+    deg), 20 deg all of it; a shoulder line read from behind (turned ~180 deg), a photo whose arms hang
+    and every other joint stay as they are."""
+    from humanvdm_core.body.fit import TURN_NOISE_DEG, TURN_TRUSTED_DEG, facing_shoulders
+
+    up = np.array([0.0, -1.0, 0.0])
+    conf = np.ones(17, np.float32)
+
+    def landmarks(turn_deg: float) -> np.ndarray:
+        t = np.radians(turn_deg)
+        side = np.array([np.cos(t), 0.0, np.sin(t)])  # the person's left, away from the camera when t > 0
+        w = np.zeros((17, 3))
+        w[0] = [0.0, -0.65, -0.1]
+        w[[11, 12]] = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
+        w[[13, 14, 15, 16]] = [[0.1, 0.45, 0.0], [-0.1, 0.45, 0.0], [0.1, 0.9, 0.0], [-0.1, 0.9, 0.0]]
+        centre = np.array([0.0, -0.45, 0.0])
+        for s, (shoulder, elbow, wrist) in ((1, (5, 7, 9)), (-1, (6, 8, 10))):  # arms out to the side
+            w[shoulder] = centre + s * 0.17 * side
+            w[elbow] = centre + s * 0.45 * side
+            w[wrist] = centre + s * 0.7 * side
+        return w
+
+    def pixels(w: np.ndarray) -> np.ndarray:  # the 2D keypoints: the landmarks seen straight on
+        return 300.0 + 400.0 * w[:, :2]
+
+    def turn_of(w: np.ndarray) -> float:
+        d = w[5] - w[6]
+        return float(np.degrees(np.arctan2(d[2], d[0])))
+
+    assert TURN_NOISE_DEG == 6.0 and TURN_TRUSTED_DEG == 12.0  # the ramp the numbers below assume
+    for turn, kept in ((4.0, 0.0), (-4.0, 0.0), (9.0, 6.0), (20.0, 20.0)):
+        w = landmarks(turn)
+        out = facing_shoulders(w.astype(np.float32), pixels(w), conf, up)
+        assert turn_of(out) == pytest.approx(kept, abs=0.05), (turn, turn_of(out))
+        np.testing.assert_allclose(out[[0, 1, 2, 3, 4, 11, 12, 13, 14, 15, 16]],
+                                   w[[0, 1, 2, 3, 4, 11, 12, 13, 14, 15, 16]], atol=1e-6)
+        # the arms turn with the shoulders: the hands lie on the shoulder line, lengths kept
+        np.testing.assert_allclose(np.linalg.norm(out[9] - out[10]), 1.4, atol=1e-5)
+        assert np.cross(out[5] - out[6], out[9] - out[6]) == pytest.approx(np.zeros(3), abs=1e-5)
+    behind = landmarks(0.0)
+    behind[[5, 6, 7, 8, 9, 10]] = behind[[6, 5, 8, 7, 10, 9]]
+    np.testing.assert_allclose(facing_shoulders(behind.astype(np.float32), pixels(behind), conf, up), behind,
+                               atol=1e-6)
+    hanging = landmarks(4.0)  # the same turn, the 2D arms hanging beside the body: not a T-pose, kept
+    kp = pixels(hanging)
+    for shoulder, elbow, wrist in ((5, 7, 9), (6, 8, 10)):
+        kp[elbow], kp[wrist] = kp[shoulder] + [0.0, 110.0], kp[shoulder] + [0.0, 210.0]
+    np.testing.assert_allclose(facing_shoulders(hanging.astype(np.float32), kp, conf, up), hanging, atol=1e-6)
+
+
 def _knee_bends_deg(c: np.ndarray) -> list[float]:
     return [_angle_deg(c[k] - c[h], c[a] - c[k]) for h, k, a in ((11, 13, 15), (12, 14, 16))]
 

@@ -36,7 +36,12 @@ Contract:
     a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body.
     An arm the 2D keypoints show held out to the side is first turned into the body's frontal plane
     (:func:`frontal_arms`, ``FitOptions.frontal_arms``): the detector tilts such forearms 20-30 deg
-    towards the camera; in a single photo a wrist the 3D landmarks place on the head is first moved to
+    towards the camera; in a single photo whose 2D keypoints show both arms held out to the side (a
+    T-pose, an A-pose: both arms at their length in the image plane, on the shoulder line) the
+    detector's shoulders and arms turned a few degrees about the vertical from facing the camera are
+    first turned to face it (:func:`facing_shoulders`, ``FitOptions.facing_shoulders``: on frontal
+    renders it turns them 2-7 deg, and each arm follows the shoulder line, a hand 0.1 m before or
+    behind the body), a clear turn is kept; in a single photo a wrist the 3D landmarks place on the head is first moved to
     the head's middle depth (:func:`onto_the_head`, ``FitOptions.hands_on_head``): a hand the photo
     shows on the face or the head touches it, where the detector often puts it 20-25 cm before the
     face (with more views their depths decide);
@@ -143,6 +148,10 @@ UPRIGHT_WEIGHT = 20.0  # default FitOptions.upright_weight
 TORSO_FREE_DEG = 1.5  # a torso within this angle of the arc from upright to the detector's torso costs nothing
 TORSO_NOISE_DEG = 10.0  # the detector's torso this close to upright counts as upright ...
 TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (between: a linear ramp)
+# A single photo's shoulder line turned about the vertical (see facing_shoulders): this close to facing the
+# camera counts as facing it, this far or more counts whole (between: a linear ramp)
+TURN_NOISE_DEG = 6.0
+TURN_TRUSTED_DEG = 12.0
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
 # An arm held out to the side (see held_out_arms): in the image, the upper arm at least ARM_OUT_DEG from
 # hanging straight down, the forearm within ARM_STRAIGHT_DEG of the upper arm's line, the upper arm at
@@ -219,6 +228,9 @@ class FitOptions:
     # a single photo: the detector's 3D wrists on the head are moved into the head's depth, the hand touches
     # it (onto_the_head)
     hands_on_head: bool = True
+    # a single photo with both arms held out to the side: the detector's shoulders turned a few degrees
+    # from facing the camera face it (facing_shoulders)
+    facing_shoulders: bool = True
     # a single photo of a person standing still (standing_still): knees straight, feet below the hips
     stance_weight: float = STANCE_WEIGHT
     # a single photo: an arm held out to the side may reach past its 2D elbow and wrist (reach_directions)
@@ -357,6 +369,43 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     side = seen - (seen @ up)[:, None] * up[None]
     side = side / side.norm(dim=-1, keepdim=True).clamp(min=1e-9)
     return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
+
+
+def facing_shoulders(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
+                     up: np.ndarray) -> np.ndarray:
+    """The detector's 3D landmarks ``world`` (17, 3, camera axes) of a photo whose 2D ``keypoints``
+    (17, 2 pixels, ``confidences`` (17,)) show both arms held out to the side (:func:`held_out_arms`: a
+    T-pose, an A-pose, both arms at their length in the image plane, on the shoulder line), with the
+    shoulders and arms (COCO-17 5-10) turned about the vertical (``up``, the world's up in the camera's
+    axes) through the shoulders' middle, so the shoulder line's turn away from facing the camera is what
+    :data:`TURN_NOISE_DEG` / :data:`TURN_TRUSTED_DEG` keep of it: none within the first, all of it from
+    the second on, a linear ramp between. MediaPipe turns the shoulders of people who face the camera by
+    a few degrees (synthetic frontal renders, truth 0: 2.1 to 6.9 on the stability suite's, -1.2 to 3.1
+    on six walkers; the three.js Soldier 4.7), and an arm held out to the side, which follows the
+    shoulder line, then stands 0.1 m in front of or behind the body at the hand. Any other photo (an arm
+    that hangs or bends: a hand on the face is where the turn tells its depth), and a shoulder line read
+    turned more than 90 deg (a photo from behind), is left alone. Nothing else moves."""
+    out = np.asarray(world, np.float64).copy()
+    if len(held_out_arms(keypoints, confidences)) < 2:
+        return out.astype(np.float32)
+    up = np.asarray(up, np.float64) / max(float(np.linalg.norm(up)), 1e-12)
+    across = np.array([1.0, 0.0, 0.0]) - up[0] * up  # the camera's horizontal, in the horizontal plane
+    line = out[5] - out[6]
+    line = line - (line @ up) * up
+    if np.linalg.norm(across) < 1e-6 or np.linalg.norm(line) < 1e-6:
+        return out.astype(np.float32)
+    across /= np.linalg.norm(across)
+    turn = float(np.arctan2(np.cross(across, line) @ up, across @ line))
+    if abs(turn) > np.pi / 2:  # the shoulders read left-right swapped: their turn is not small
+        return out.astype(np.float32)
+    noise, trusted = np.radians(TURN_NOISE_DEG), np.radians(TURN_TRUSTED_DEG)
+    kept = abs(turn) if abs(turn) >= trusted else max(abs(turn) - noise, 0.0) * trusted / (trusted - noise)
+    angle = np.sign(turn) * kept - turn
+    k = np.array([[0.0, -up[2], up[1]], [up[2], 0.0, -up[0]], [-up[1], up[0], 0.0]])
+    rotation = np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+    centre = 0.5 * (out[5] + out[6])
+    out[5:11] = (out[5:11] - centre) @ rotation.T + centre
+    return out.astype(np.float32)
 
 
 def held_out_arms(keypoints: np.ndarray, confidences: np.ndarray) -> list[int]:
@@ -599,8 +648,12 @@ class _Problem:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = onto_the_head(self.raw_world[f], o.confidences)
+        ups = cams.w2c[:, :3, :3] @ np.array([0.0, 1.0, 0.0])  # the world's up in each camera's axes
+        if options.facing_shoulders and sum(o.has_keypoints for o in observations) == 1:
+            for f, o in enumerate(observations):
+                if o.world_keypoints is not None:
+                    self.raw_world[f] = facing_shoulders(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
         if options.frontal_arms:
-            ups = cams.w2c[:, :3, :3] @ np.array([0.0, 1.0, 0.0])  # the world's up in each camera's axes
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
