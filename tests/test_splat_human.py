@@ -104,6 +104,18 @@ def test_posing_matches_the_body_and_pose_refinement_moves(subject):
     assert torch.allclose(moved - gs.means, torch.tensor([0.0, 0.1, 0.0]).expand_as(moved), atol=1e-4)
 
 
+def test_reading_the_training_views_reports_its_progress(subject, tmp_path, monkeypatch):
+    """The full preset reads 81 frames at 1080² before its first step (15 s here): the live display
+    shows that phase and its count rather than "no progress reported yet"."""
+    from humanvdm_core.workflow.progress import PROGRESS_ENV
+
+    monkeypatch.setenv(PROGRESS_ENV, str(tmp_path / "progress.jsonl"))
+    views = H.load_views(subject / "orbit", SIZE)
+    records = [json.loads(line) for line in (tmp_path / "progress.jsonl").read_text().splitlines()]
+    assert records and {r["what"] for r in records} == {"read the training views"}
+    assert (records[-1]["done"], records[-1]["total"], records[-1]["unit"]) == (len(views.images), 21, "frames")
+
+
 def test_matrix_quaternion_round_trip():
     torch.manual_seed(0)
     q = torch.nn.functional.normalize(torch.randn(200, 4), dim=1)

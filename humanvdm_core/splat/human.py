@@ -478,19 +478,21 @@ def resample(frame: np.ndarray, size: int) -> np.ndarray:
 
 
 def load_views(root: str | Path, size: int, indices: list[int] | None = None) -> TrainingViews:
-    """Read a frame set (one frame at a time) at ``size``² with matching cameras."""
+    """Read a frame set (one frame at a time, progress reported) at ``size``² with matching cameras."""
     from humanvdm_core.frames import open_frame_set, read_frame
+    from humanvdm_core.workflow.progress import report
 
     paths, cameras = open_frame_set(root)
     if cameras.width != cameras.height:
         raise InputError(f"frames must be square, got {cameras.width}x{cameras.height}")
     idx = list(range(len(paths))) if indices is None else list(indices)
     frames = []
-    for i in idx:
+    for k, i in enumerate(idx):
         f = read_frame(paths[i])
         if f.shape[2] < 4:
             raise InputError(f"{paths[i]}: frames must be RGBA")
         frames.append(resample(f[..., :4].astype(np.float32), size))
+        report(k + 1, len(idx), "frames", "read the training views")
     return prepare_views(np.stack(frames), cameras.subset(idx), size)
 
 
