@@ -171,7 +171,7 @@ def run(ctx: StageContext) -> None:
     cameras = read_cameras(ctx.inputs["frames"])
     input_view, photo, detail_view = H.load_input_view(ctx.inputs["frames"], views, s["input_view_resolution"])
     proxy = ctx.inputs["orbit"] / "proxy.npz" if "orbit" in ctx.inputs else None
-    ctx.progress(0, 1, "steps", "place the Gaussians on the subject")  # ~1 min for the full preset on a CPU
+    ctx.progress(0, 1, "steps", "place the Gaussians on the subject")
     anchor, template = start_anchor(anchor, views, p["template"], s["subject_spacing"], proxy, p["seed"],
                                     detail_view, p["detail_spacing"])
     ctx.log.info("preset %s, template %s: %d Gaussians, %d views at %d² (the input view at %d²), %d iterations on %s",

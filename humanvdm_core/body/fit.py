@@ -41,8 +41,8 @@ Contract:
     detector's shoulders and arms turned a few degrees about the vertical from facing the camera are
     first turned to face it (:func:`facing_shoulders`, ``FitOptions.facing_shoulders``: on frontal
     renders it turns them 2-7 deg, and each arm follows the shoulder line, a hand 0.1 m before or
-    behind the body), a clear turn is kept; in a single photo a wrist the 3D landmarks place on the head is first moved to
-    the head's middle depth (:func:`onto_the_head`, ``FitOptions.hands_on_head``): a hand the photo
+    behind the body), a clear turn is kept; in a single photo a wrist the 3D landmarks place on the
+    head is first moved to the head's middle depth (:func:`onto_the_head`, ``FitOptions.hands_on_head``): a hand the photo
     shows on the face or the head touches it, where the detector often puts it 20-25 cm before the
     face (with more views their depths decide);
   * silhouette, one-sided by default: projected vertices (a fixed subsample) must fall inside the
