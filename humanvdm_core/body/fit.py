@@ -105,7 +105,7 @@ import numpy as np
 import torch
 
 from humanvdm_core.body import load_body_model
-from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams
+from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.workflow.errors import ConfigError, HumanVDMError, InputError
 from humanvdm_core.workflow.progress import report
@@ -400,9 +400,7 @@ def facing_shoulders(world: np.ndarray, keypoints: np.ndarray, confidences: np.n
         return out.astype(np.float32)
     noise, trusted = np.radians(TURN_NOISE_DEG), np.radians(TURN_TRUSTED_DEG)
     kept = abs(turn) if abs(turn) >= trusted else max(abs(turn) - noise, 0.0) * trusted / (trusted - noise)
-    angle = np.sign(turn) * kept - turn
-    k = np.array([[0.0, -up[2], up[1]], [up[2], 0.0, -up[0]], [-up[1], up[0], 0.0]])
-    rotation = np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+    rotation = axis_angle_to_matrix(torch.as_tensor((np.sign(turn) * kept - turn) * up)).numpy()
     centre = 0.5 * (out[5] + out[6])
     out[5:11] = (out[5:11] - centre) @ rotation.T + centre
     return out.astype(np.float32)
