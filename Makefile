@@ -9,6 +9,8 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 JOBS   ?= 1
 ARGS   ?=
+# test files run side by side, one worker per core this process may use (0: one process, no workers)
+TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; n = len(os.sched_getaffinity(0)); print(n if n > 1 else 0)" 2>/dev/null || echo 0)
 
 .PHONY: setup reconstruct test lint bench experiments doctor clean-venv
 
@@ -44,7 +46,7 @@ reconstruct: setup
 	$(VENV)/bin/humanvdm run "$(INPUT)" --jobs $(JOBS) $(ARGS)
 
 test: setup
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(ARGS)
 
 lint: setup
 	$(VENV)/bin/ruff check .
