@@ -80,8 +80,10 @@ import cv2
 import numpy as np
 
 from humanvdm_core.cameras import Cameras, orbit_cameras, project_points, sample_bilinear
-from humanvdm_core.clothed_proxy import ClothedProxy, nearest_fill
+from humanvdm_core.clothed_proxy import ClothedProxy
+from humanvdm_core.image_fill import nearest_fill
 from humanvdm_core.perception.detect import MIN_CONFIDENCE
+from humanvdm_core.proxy_colours import hair_colour
 from humanvdm_core.scans import TexturedMesh, framing_radius
 
 log = logging.getLogger("humanvdm.body_prior")
@@ -96,10 +98,6 @@ MAX_CENTRING_SCALE = 1.5  # centring_transform scales the proxy by at most this 
 HEAD_JOINTS = ("head", "eye.L", "eye.R")
 BOUNDARY_SMOOTHING = 3  # neighbour-average passes on the visible/hidden weight
 BACK_SMOOTHING = 2  # neighbour-average passes on the hidden vertices' colours
-HAIR_BAND = 0.2  # the top this fraction of the head's projected height is sampled for the hair colour ...
-FACE_ROWS = (0.55, 0.75)  # ... less what has the colour of the face's skin (these rows of the head, its middle fifth) ...
-HAIR_SHARE = 0.2  # ... when at least this share of the band is left
-HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
 # A photo from above (orbit_elevation): the detector's 3D body tilting towards the camera beyond
 FROM_ABOVE_TILT_DEG = 20.0  # this (standing) ...
 SEATED_TILT_DEG = 12.0  # ... or this (seated: its 3D thighs lean back THIGHS_AT_CAMERA_DEG or more) ...
@@ -283,43 +281,6 @@ def _smooth(values: np.ndarray, faces: np.ndarray, passes: int, update: np.ndarr
     return out
 
 
-def hair_colour(image: np.ndarray, mask: np.ndarray, head_px: np.ndarray) -> np.ndarray | None:
-    """The hair's colour: the person's pixels in the top :data:`HAIR_BAND` of the head's projected box
-    (``head_px``: projected head vertices) less those of the face's skin colour (the median of the head's
-    :data:`FACE_ROWS`, middle fifth; a forehead under hair drawn back), their median colour
-    (:func:`humanvdm_core.clothed_proxy.median_colour`) when at least :data:`HAIR_SHARE` of the band is
-    left; else the same over the head above :data:`HAIR_UPPER` of its box (hands resting on the head
-    fill the band with skin); else the band's per-channel median (a bald head, hair of the skin's
-    colour); None when the band holds no person."""
-    if len(head_px) == 0:
-        return None
-    h, w = mask.shape
-    x0, x1 = np.clip(np.percentile(head_px[:, 0], [10, 90]).astype(int), 0, w - 1)
-    y_lo, y_hi = np.clip(np.percentile(head_px[:, 1], [0, 100]).astype(int), 0, h - 1)
-    cols = mask[:, x0:x1 + 1] > 0.5
-    rows_with_person = np.nonzero(cols.any(axis=1))[0]
-    if rows_with_person.size == 0:
-        return None
-    top = int(rows_with_person.min())  # the top of the head in the photo (hair included)
-    bottom = top + max(2, int(HAIR_BAND * max(y_hi - min(top, y_lo), 1)))
-    band = mask[top:bottom, x0:x1 + 1] > 0.5
-    if band.sum() < 4:
-        return None
-    pixels = image[top:bottom, x0:x1 + 1][band]
-    # the forehead showing in the band (hair drawn back, a high hairline) is not hair
-    from humanvdm_core.clothed_proxy import median_colour, skin_like
-
-    fy0, fy1 = (int(y_lo + f * (y_hi - y_lo)) for f in FACE_ROWS)
-    cx, half = (x0 + x1) // 2, max(1, (x1 - x0) // 5)
-    face = image[fy0:fy1, cx - half:cx + half + 1][mask[fy0:fy1, cx - half:cx + half + 1] > 0.5]
-    if len(face) >= 16:
-        upper = max(bottom, int(y_lo + HAIR_UPPER * (y_hi - y_lo)))
-        for rows in (slice(top, bottom), slice(top, upper)):
-            seen = image[rows, x0:x1 + 1][mask[rows, x0:x1 + 1] > 0.5]
-            hair = ~skin_like(seen[None], median_colour(face))[0]
-            if hair.sum() >= max(4, HAIR_SHARE * len(seen)):
-                return median_colour(seen[hair])
-    return np.median(pixels, axis=0)
 
 
 def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image: np.ndarray, mask: np.ndarray,

@@ -66,30 +66,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
-8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``):
-
-   * front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside,
-     so no background colour smears onto the edge;
-   * back (the unseen side): each back pixel takes, for its body part (the part of the farthest
-     body surface there; outside the body, the nearest part), the median colour of that part's
-     visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments keep their
-     colours from top to bottom, but a print, logo, tie or held object narrower than half the part is
-     not carried over, nor a wider print on the torso a few rows tall whose colour does not recur
-     (:func:`without_print_runs`; stripes recur and stay); arms and legs take their medians per side
-     of the body (what one hand holds stays off the other arm); where the torso or the legs are both
-     the nearest and the farthest surface, the torso and the legs take one median per row, so the
-     garment's own hem decides, not the body's waist line; a torso row of the neckline (from the base of the neck to :data:`NECKLINE_DEPTH`
-     below the shoulders' top) that shows clothing beside skin of the face's colour (:func:`face_colour`,
-     :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median only, since a top covers
-     more of the back than of the front; hands keep their own colour; a thick region outside the body
-     (a held object, a hat, a coat's flare) takes its own median per row, not the nearest part's;
-   * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
-     shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head
-     in the photo, a forehead showing there left out (``head_colour``, from
-     :func:`humanvdm_core.body_prior.hair_colour`), so no face appears on the back; when the photo
-     shows the person's back (``facing_away``), the unseen side is the front and the head there takes
-     the head's own median colour (no face is invented); when it shows the person in profile
-     (``profile``), the far side of the head is the near side mirrored: the photo's own colours there.
+8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``): the photo on the
+   front, its silhouette band refilled from inside; on the back (the unseen side) per body part and
+   row the median colour of what the photo shows of that part, without prints, logos or held objects,
+   hands in their own colour and the head's back in the hair's (:mod:`humanvdm_core.proxy_colours`).
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -107,27 +87,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from humanvdm_core.body.parts import PARTS, vertex_parts, vertex_sides
 from humanvdm_core.cameras import Cameras
+from humanvdm_core.image_fill import CROSS, harmonic_extension, nearest_fill, outside_of, row_nearest
+from humanvdm_core.proxy_colours import distinct_hair_curtain, face_colour, refill_band, unseen_side_colours
 from humanvdm_core.scans import TexturedMesh
 
 SCHEMA = "humanvdm.clothed_proxy"
 SCHEMA_VERSION = 1
-PARTS = ("torso", "head", "arms", "hands", "legs", "feet")
 INFLATION = 0.8  # half-depth / half-width of an inflated cross-section (round would be 1)
 LOOSE_WINDOW = 0.08  # the neighbourhood (fraction of the frame) whose share outside the body decides ...
 LOOSE_RANGE = (0.15, 0.45)  # ... how much to inflate: none below the first share, fully above the second
-BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside
-PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
-HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 HAIR_DEPTH = 0.05  # metres of hair behind the skull where the photo shows long hair (a hair curtain) ...
 HAIR_CURTAIN_DEPTH = 0.03  # ... and at least this far behind the body where the curtain hangs ...
 HAIR_FADE = 0.1  # ... fading out over this fraction of the grid below the curtain's lowest row
-SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
-SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
-NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
-NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
 SKIN_INFLUENCES = 4
-PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
@@ -137,22 +111,8 @@ SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourh
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
-LOOSE_OWN_MIN = 0.005  # a region outside the body covering this share of the mask keeps its own colours at the back ...
-LOOSE_OWN_OPEN = 0.015  # ... once thinner parts than this fraction of the frame are cut off (a sliver of background)
-PRINT_RUN = (0.03, 0.1)  # rows (fraction of the person's height) a print wider than half the garment spans ...
-PRINT_STEP = 0.12  # ... its colour this far (RGB) from the garment's running median ...
-PRINT_WINDOW = 0.1  # ... over this fraction of the person's height each side ...
-PRINT_SAME = 0.08  # ... the garment above and below it this close to each other, and its colour not recurring
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
-# joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
-_PART_RULES = (
-    ("head", ("head", "eye", "jaw")),
-    ("hands", ("wrist", "finger", "metacarpal", "hand", "thumb", "index", "middle", "ring", "pinky")),
-    ("arms", ("upperarm", "lowerarm", "shoulder", "elbow")),
-    ("feet", ("foot", "toe", "ankle")),
-    ("legs", ("upperleg", "lowerleg", "pelvis.", "hip", "knee")),
-)
 
 
 @dataclass
@@ -185,47 +145,12 @@ class ClothedProxy:
         }, schema=SCHEMA, version=SCHEMA_VERSION)
 
 
-def part_of_joints(joint_names: list[str]) -> np.ndarray:
-    """(J,) int index into :data:`PARTS` for each joint name (torso unless a rule matches)."""
-    out = np.zeros(len(joint_names), np.int64)
-    for j, name in enumerate(joint_names):
-        low = name.lower()
-        for part, keys in _PART_RULES:
-            if any(k in low for k in keys):
-                out[j] = PARTS.index(part)
-                break
-    return out
 
 
-def vertex_parts(skinning_weights: np.ndarray, joint_names: list[str]) -> np.ndarray:
-    """(V,) int part of each body vertex: the part with the largest summed skinning weight."""
-    joint_part = part_of_joints(joint_names)
-    per_part = np.zeros((skinning_weights.shape[0], len(PARTS)))
-    for p in range(len(PARTS)):
-        per_part[:, p] = skinning_weights[:, joint_part == p].sum(axis=1)
-    return per_part.argmax(axis=1)
 
 
-def side_of_joints(joint_names: list[str]) -> np.ndarray:
-    """(J,) int: +1 for a joint on the body's left (Anny's ``.L``, SMPL's ``left_``), -1 on its right, 0
-    on the midline."""
-    out = np.zeros(len(joint_names), np.int64)
-    for j, name in enumerate(joint_names):
-        low = name.lower()
-        if low.endswith(".l") or low.startswith("left"):
-            out[j] = 1
-        elif low.endswith(".r") or low.startswith("right"):
-            out[j] = -1
-    return out
 
 
-def vertex_sides(skinning_weights: np.ndarray, joint_names: list[str]) -> np.ndarray:
-    """(V,) int side of each body vertex (+1 left, -1 right, 0 midline): the side whose joints hold
-    most of its skinning weight, when that is more than half of it."""
-    side = side_of_joints(joint_names)
-    left = skinning_weights[:, side == 1].sum(axis=1)
-    right = skinning_weights[:, side == -1].sum(axis=1)
-    return np.where(left > 0.5, 1, np.where(right > 0.5, -1, 0)).astype(np.int64)
 
 
 # ----------------------------------------------------------------------------- body maps
@@ -307,36 +232,10 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
 # ----------------------------------------------------------------------------- PDE helpers
 
-_CROSS = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
 
 
-def _jacobi(x: np.ndarray, free: np.ndarray, weight: np.ndarray, iterations: int) -> np.ndarray:
-    """Jacobi steps of ``x_i = sum_j w_j x_j / sum_j w_j`` over 4-neighbours, on ``free`` pixels."""
-    den = np.maximum(cv2.filter2D(weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT), 1e-6)
-    x = x.astype(np.float32)
-    for _ in range(iterations):
-        x = np.where(free, cv2.filter2D(x * weight, -1, _CROSS, borderType=cv2.BORDER_CONSTANT) / den, x)
-    return x
 
 
-def _pyramid_solve(x0: np.ndarray, free: np.ndarray, weight: np.ndarray, iterations: int = 60,
-                   coarsest: int = 24) -> np.ndarray:
-    """Laplace equation by coarse-to-fine Jacobi: the problem is restricted to halved grids down to
-    ``coarsest`` px, solved there first, and each solution seeds the next finer level."""
-    h, w = free.shape
-    if min(h, w) <= coarsest:
-        return _jacobi(x0, free, weight, iterations * 8)
-    half = (max(1, w // 2), max(1, h // 2))
-    c_free = cv2.resize(free.astype(np.float32), half, interpolation=cv2.INTER_AREA) > 0.5
-    c_weight = cv2.resize(weight, half, interpolation=cv2.INTER_AREA)
-    # fixed values at the coarse level: the average of the fixed fine pixels under each coarse pixel
-    fine_fixed = (~free).astype(np.float32)
-    num = cv2.resize(x0 * fine_fixed, half, interpolation=cv2.INTER_AREA)
-    den = cv2.resize(fine_fixed, half, interpolation=cv2.INTER_AREA)
-    c_x0 = np.where(~c_free & (den > 0), num / np.maximum(den, 1e-6), cv2.resize(x0, half, interpolation=cv2.INTER_AREA))
-    coarse = _pyramid_solve(c_x0.astype(np.float32), c_free, c_weight.astype(np.float32), iterations, coarsest)
-    up = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-    return _jacobi(np.where(free, up, x0), free, weight, iterations)
 
 
 def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
@@ -385,298 +284,30 @@ def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border:
     return 0.5 * (sheets[0] + sheets[1]), half
 
 
-def harmonic_extension(values: np.ndarray, known: np.ndarray, domain: np.ndarray) -> np.ndarray:
-    """``values`` on ``known`` pixels, extended over ``domain`` by the Laplace equation (free at the
-    domain's border); pixels of the domain unreachable from ``known`` take the nearest known value."""
-    start = nearest_fill(values, known)
-    free = domain & ~known
-    return _pyramid_solve(start.astype(np.float32), free, domain.astype(np.float32)).astype(np.float64)
 
 
-def outside_of(region: np.ndarray) -> np.ndarray:
-    """Pixels not in ``region`` (H, W bool) that connect to the image border without crossing it (4-connected):
-    everything but ``region`` and the holes it encloses."""
-    free = (~region).astype(np.uint8)
-    padded = np.pad(free, 1, constant_values=1)
-    _, labels = cv2.connectedComponents(padded, connectivity=4)
-    return (labels == labels[0, 0])[1:-1, 1:-1]
 
 
-def row_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """``values`` (H, W) with every pixel taking the value of the nearest ``known`` pixel in its own row
-    (rows without one: the nearest known pixel anywhere)."""
-    out = nearest_fill(values, known)
-    for y in np.nonzero(known.any(axis=1))[0]:
-        cols = np.nonzero(known[y])[0]
-        x = np.arange(values.shape[1])
-        right = np.clip(np.searchsorted(cols, x), 0, len(cols) - 1)
-        left = np.clip(right - 1, 0, len(cols) - 1)
-        pick = np.where(np.abs(cols[left] - x) <= np.abs(cols[right] - x), cols[left], cols[right])
-        out[y] = values[y, pick]
-    return out
 
 
-def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """``values`` (H, W[, C]) with every pixel taking the value of the nearest ``known`` pixel."""
-    if not known.any():
-        return values.copy()
-    src = np.where(known, 0, 1).astype(np.uint8)
-    _, labels = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-    rows, cols = np.nonzero(known)
-    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
-    by_label[labels[rows, cols]] = np.stack([rows, cols], axis=1)
-    where = by_label[labels]
-    return values[where[..., 0], where[..., 1]]
 
 
 # ----------------------------------------------------------------------------- colour
 
-def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX) -> np.ndarray:
-    """``rgb`` with the mask's silhouette band (``band_px``) and everything outside replaced by the
-    nearest pixel further inside, so edge pixels never mix in the background."""
-    person = mask > 0.5
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
-    inner = cv2.erode(person.astype(np.uint8), kernel).astype(bool)
-    if inner.sum() < 64:
-        inner = person
-    return nearest_fill(rgb, inner)
 
 
-def median_colour(pixels: np.ndarray) -> np.ndarray:
-    """(C,) the median colour of ``pixels`` (N, C) as a colour they have: the mean of the pixels whose
-    brightness (channel mean) lies in the middle fifth of theirs. A per-channel median mixes the
-    channels of different pixels (half a light shirt and half dark jeans give a skin tone)."""
-    order = np.argsort(pixels.mean(axis=1), kind="stable")
-    n = len(order)
-    lo, hi = int(0.4 * n), max(int(0.4 * n) + 1, int(np.ceil(0.6 * n)))
-    return pixels[order[lo:hi]].mean(axis=0)
 
 
-def skin_like(image: np.ndarray, skin: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels of about the colour ``skin`` (3,) -- chromaticity within :data:`SKIN_CHROMA`,
-    brightness within :data:`SKIN_BRIGHTNESS` of it, so a shadowed neck still counts."""
-    total = image.sum(axis=2, keepdims=True) + 1e-3
-    ref = np.asarray(skin, np.float32)
-    chroma = np.linalg.norm(image / total - ref / (ref.sum() + 1e-3), axis=2)
-    ratio = image.mean(axis=2) / max(float(ref.mean()), 1e-3)
-    return (chroma < SKIN_CHROMA) & (ratio > SKIN_BRIGHTNESS[0]) & (ratio < SKIN_BRIGHTNESS[1])
 
 
-def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.ndarray | None = None,
-                share: float = NECKLINE_SHARE, prefer_rows: tuple[int, int] | None = None) -> np.ndarray:
-    """(H, C): per image row, the median colour (:func:`median_colour`) of the ``select``ed pixels within
-    ``band`` rows of it (rows with none take the nearest row that has some); with ``prefer`` (a subset of
-    ``select``) and in the rows ``prefer_rows`` (start, stop; all without), only of those where they are
-    at least ``share`` of the row's."""
-    h = image.shape[0]
-    out = np.full((h, image.shape[2]), np.nan, np.float32)
-    counts = select.sum(axis=1)
-    preferred = prefer.sum(axis=1) if prefer is not None else None
-    for y in range(h):
-        y0, y1 = max(0, y - band), min(h, y + band + 1)
-        n = counts[y0:y1].sum()
-        if n == 0:
-            continue
-        if (preferred is not None and (prefer_rows is None or prefer_rows[0] <= y < prefer_rows[1])
-                and preferred[y0:y1].sum() >= max(1, share * n)):
-            out[y] = median_colour(image[y0:y1][prefer[y0:y1]])
-        else:
-            out[y] = median_colour(image[y0:y1][select[y0:y1]])
-    have = np.nonzero(np.isfinite(out[:, 0]))[0]
-    if len(have) == 0:
-        return np.zeros_like(out)
-    nearest = have[np.clip(np.searchsorted(have, np.arange(h)), 0, len(have) - 1)]
-    before = have[np.clip(np.searchsorted(have, np.arange(h)) - 1, 0, len(have) - 1)]
-    pick = np.where(np.abs(before - np.arange(h)) < np.abs(nearest - np.arange(h)), before, nearest)
-    return out[pick]
 
 
-def without_print_runs(per_row: np.ndarray, shown: np.ndarray, height: int, band: int) -> np.ndarray:
-    """``per_row`` (H, C) with each run of rows that looks like a print wider than half the part replaced by
-    the colours around it: a run :data:`PRINT_RUN` (min, max) of ``height`` tall whose colour stands more
-    than :data:`PRINT_STEP` from the garment's running median (over :data:`PRINT_WINDOW` of ``height`` each
-    side), the garment above and below it (``band`` rows beyond it: the medians' window smooths the run
-    into them) within :data:`PRINT_SAME` of each other, and whose colour fewer other rows of the part have
-    than half its own (a striped shirt's stripes recur and stay; the few rows of a transition between
-    two garments do not count). ``shown``: (H,) bool, the rows the part is seen in."""
-    rows = np.nonzero(shown)[0]
-    if len(rows) < 3 or height <= 0:
-        return per_row
-    out = per_row.copy()
-    y0 = int(rows.min())
-    c = per_row[y0:int(rows.max()) + 1]
-    n = len(c)
-    w = max(1, int(PRINT_WINDOW * height))
-    ref = np.stack([np.median(c[max(0, i - w):i + w + 1], axis=0) for i in range(n)])
-    off = np.append(np.linalg.norm(c - ref, axis=1) > PRINT_STEP, False)
-    off[0] = False  # a run at the top has no garment above it
-    starts = np.nonzero(off[1:] & ~off[:-1])[0] + 1
-    ends = np.nonzero(off[:-1] & ~off[1:])[0] + 1
-    for start, end in zip(starts, ends, strict=True):
-        a, b = start - band, end + band
-        if not PRINT_RUN[0] * height <= end - start <= PRINT_RUN[1] * height or a < 1 or b >= n:
-            continue
-        above, below = c[a - 1], c[b]
-        if np.linalg.norm(above - below) > PRINT_SAME:
-            continue
-        colour = np.median(c[start:end], axis=0)
-        elsewhere = np.ones(n, bool)
-        elsewhere[a:b] = False
-        if (np.linalg.norm(c[elsewhere] - colour, axis=1) <= PRINT_SAME).sum() >= max(3, (end - start) // 2):
-            continue
-        t = ((np.arange(a, b) - a + 0.5) / (b - a))[:, None]
-        out[y0 + a:y0 + b] = (1 - t) * above + t * below
-    return out
 
 
-def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
-                        head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
-                        back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
-                        loose: np.ndarray | None = None, profile: bool = False) -> np.ndarray:
-    """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
-    median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
-    garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
-    objects narrower than half the part are not carried over (on the torso, nor a wider print a few
-    rows tall: :func:`without_print_runs`); with ``front_side`` / ``back_side`` (the
-    body's side per pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the
-    torso and the legs share one median per row where both the nearest and the farthest surface are
-    one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
-    the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
-    With ``skin_colour`` (the face's), a torso row of the neckline (from the torso's top, the base of the
-    neck, to :data:`NECKLINE_DEPTH` of the person's height below the shoulders' top, the highest arm
-    pixel) that shows clothing beside skin (a collar, a V-neck, a low or open neckline) takes the
-    clothing's colour only: a top covers more of the back than of the front, up to the neck. With
-    ``loose`` (the mask's pixels outside the body), each of its connected regions at least
-    :data:`LOOSE_OWN_OPEN` of the frame thick and :data:`LOOSE_OWN_MIN` of the mask large (a held object,
-    a hat, a coat's or a skirt's flare) takes its own median per row, not the nearest body part's, and
-    is left out of the parts' medians: a box held beside the jeans is not jeans at the back. With
-    ``profile`` (the photo shows the person from the side) the far side of the head is its near side
-    mirrored, and the camera's rays cross the head's midplane, so one pixel shows both: wherever the head
-    is both the nearest and the farthest surface it keeps the photo's own colours (the other cheek, ear
-    and hair), not ``head_colour`` over half a face."""
-    size = photo.shape[0]
-    band = max(1, int(PRINT_BAND * size))
-    person = mask > 0.5
-    clothed = ~skin_like(photo, skin_colour) if skin_colour is not None else None
-    # ... in the neckline's rows: from the torso's top (the base of the neck: a row there that shows a collar
-    # beside the neck is the collar at the back, one that shows only the neck stays skin; or the shoulders'
-    # top, the highest arm pixel, if higher) down NECKLINE_DEPTH of the person's height below the shoulders'
-    # top (below it a hem's rows keep their plain median)
-    arm_rows = np.nonzero((person & (front_part == PARTS.index("arms"))).any(axis=1))[0]
-    rows = np.nonzero(person.any(axis=1))[0]
-    height = int(rows.max() - rows.min() + 1) if len(rows) else 0
-    top = int(arm_rows.min()) if len(arm_rows) else 0
-    torso_rows = np.nonzero((person & (front_part == PARTS.index("torso"))).any(axis=1))[0]
-    start = min(top, int(torso_rows.min())) if len(torso_rows) else top
-    neckline = (start, top + int(NECKLINE_DEPTH * height)) if len(rows) else None
-    out = nearest_fill(photo, person).astype(np.float32)
-    # the back of the neck behind a collar or a shoulder is the clothing's, not the hair's: the head's
-    # colour goes only behind what the photo shows as the head
-    head = PARTS.index("head")
-    back_part = np.where((back_part == head) & np.isin(front_part, [PARTS.index("torso"), PARTS.index("arms")]),
-                         front_part, back_part)
-    # what lies outside the body (a held object, a hat, a coat's or a skirt's flare) takes its own colours at
-    # the back, not those of the body part nearest to it (per thick connected region, its median per row),
-    # and is no source of the parts' colours
-    regions = []
-    if loose is not None:
-        k = max(3, int(LOOSE_OWN_OPEN * size) | 1)
-        thick = cv2.morphologyEx((loose & person).astype(np.uint8), cv2.MORPH_OPEN,
-                                 cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(thick, connectivity=8)
-        regions = [labels == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= LOOSE_OWN_MIN * person.sum()]
-    kept_apart = np.logical_or.reduce(regions) if regions else np.zeros_like(person)
-
-    def shown(select: np.ndarray) -> np.ndarray:
-        rest = select & ~kept_apart
-        return rest if rest.sum() >= 4 else select
-
-    for p in range(len(PARTS)):
-        want = back_part == p
-        source = shown(person & (front_part == p))
-        if not want.any() or source.sum() < 4:
-            continue
-        if PARTS[p] == "head" and head_colour is not None:
-            out[want] = head_colour
-        elif PARTS[p] == "hands":
-            out[want] = nearest_fill(photo, source)[want]  # skin keeps its own colour
-        else:
-            prefer = source & clothed if clothed is not None and PARTS[p] == "torso" else None
-            per_row = row_medians(photo, source, band, prefer, prefer_rows=neckline)
-            if PARTS[p] == "torso":
-                per_row = without_print_runs(per_row, source.any(axis=1), height, band)
-            out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
-            if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
-                # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
-                for side in (-1, 1):
-                    own, own_source = want & (back_side == side), source & (front_side == side)
-                    if own.any() and own_source.sum() >= 4:
-                        per_row = row_medians(photo, own_source, band)
-                        out[own] = np.broadcast_to(per_row[:, None, :], photo.shape)[own]
-    # where the torso or the legs are the farthest surface and the nearest one too (or an arm or a hand
-    # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
-    # not the body's waist line: one median per row over the torso and the legs together
-    trunk = [PARTS.index("torso"), PARTS.index("legs")]
-    source = shown(person & np.isin(front_part, trunk))
-    same = np.isin(front_part, trunk + [PARTS.index("arms"), PARTS.index("hands")]) & np.isin(back_part, trunk)
-    if source.sum() >= 4 and same.any():
-        per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,
-                              prefer_rows=neckline)
-        per_row = without_print_runs(per_row, source.any(axis=1), height, band)
-        out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
-    for region in regions:
-        per_row = row_medians(photo, region, band)
-        out[region] = np.broadcast_to(per_row[:, None, :], photo.shape)[region]
-    if head_colour is not None:
-        hair = distinct_hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
-        out[hair & (back_part != PARTS.index("hands"))] = head_colour
-    if profile:
-        mirrored = person & (front_part == head) & (back_part == head)
-        out[mirrored] = photo[mirrored]
-    return out
 
 
-def face_colour(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray,
-                hair: np.ndarray | None) -> np.ndarray | None:
-    """The face's skin colour: the median colour (:func:`median_colour`) of the head's pixels in the
-    photo that are not of about the ``hair`` colour (:data:`HAIR_DISTANCE`); None without a hair colour
-    or with fewer than 32 such pixels (a photo from behind, a tiny head)."""
-    if hair is None:
-        return None
-    head = (mask > 0.5) & (front_part == PARTS.index("head"))
-    face = head & (np.linalg.norm(photo - np.asarray(hair, np.float32)[None, None], axis=2) > HAIR_DISTANCE)
-    return median_colour(photo[face]) if face.sum() >= 32 else None
 
 
-def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:
-    """Where long hair hangs on the unseen side: the photo's pixels of about the hair's colour
-    (:data:`HAIR_DISTANCE`) connected to the top of the head, and, per column of their span, everything
-    from the top down to the lowest of them nearby (hair seen beside the neck hangs behind it too),
-    at most down to the middle of the person's height. Used only where the torso's clothes differ from
-    the hair's colour by more than :data:`HAIR_DISTANCE` (else hair and clothes cannot be told apart)."""
-    person = mask > 0.5
-    rows = np.nonzero(person.any(axis=1))[0]
-    if len(rows) == 0:
-        return np.zeros_like(person)
-    top, bottom = int(rows.min()), int(rows.max()) + 1
-    near = person & (np.linalg.norm(photo - hair[None, None], axis=2) < HAIR_DISTANCE)
-    n, labels = cv2.connectedComponents(near.astype(np.uint8), connectivity=8)
-    head = person & (front_part == PARTS.index("head"))
-    band = np.zeros_like(person)
-    band[top:top + max(2, (bottom - top) // 30)] = True
-    seeds = np.unique(labels[near & band & cv2.dilate(head.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)])
-    region = np.isin(labels, seeds[seeds > 0])
-    if not region.any():
-        return np.zeros_like(person)
-    lowest = np.where(region.any(axis=0), region.shape[0] - 1 - np.argmax(region[::-1], axis=0), -1)
-    cols = np.nonzero(lowest >= 0)[0]
-    span = max(3, (cols.max() - cols.min()) // 3) | 1
-    lowest = cv2.dilate(lowest.astype(np.float32)[None], np.ones((1, span), np.uint8))[0]
-    lowest = np.minimum(lowest, top + 0.5 * (bottom - top))
-    lowest[: cols.min()] = -1
-    lowest[cols.max() + 1:] = -1
-    yy = np.arange(person.shape[0])[:, None]
-    return person & (yy <= lowest[None, :])
 
 
 def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, rgb: np.ndarray,
@@ -720,14 +351,6 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     return 0.5 * (front + new_back), 0.5 * (new_back - front)
 
 
-def distinct_hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:
-    """:func:`hair_curtain` where hair can be told from the clothes under it: the torso's median colour
-    lies more than :data:`HAIR_DISTANCE` from ``hair`` (else, or with fewer than 16 torso pixels, none).
-    The one rule for both the unseen side's hair colour and its volume (:func:`hang_hair`)."""
-    torso = (mask > 0.5) & (front_part == PARTS.index("torso"))
-    if torso.sum() < 16 or np.linalg.norm(np.median(photo[torso], axis=0) - hair) <= HAIR_DISTANCE:
-        return np.zeros(mask.shape, bool)
-    return hair_curtain(photo, mask, front_part, hair)
 
 
 # ----------------------------------------------------------------------------- the proxy
@@ -932,7 +555,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         reach = horizontal_reach(cam_g)
         hung = harmonic_extension(np.where(fitted, mid_body * reach, 0.0), fitted, domain) / reach
         mid = hang * hung + (1.0 - hang) * mid
-    border = domain & ~cv2.erode(domain.astype(np.uint8), _CROSS.astype(np.uint8)).astype(bool)
+    border = domain & ~cv2.erode(domain.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
     mid, half = remove_spikes(mid, half, domain, border)

@@ -1,5 +1,6 @@
-"""The clothed proxy (humanvdm_core.clothed_proxy): its PDE helpers, the surface it builds around a
-body inside a wider mask, and -- on a synthetic subject in a skirt -- the skirt's width from the side."""
+"""The clothed proxy (humanvdm_core.clothed_proxy; its colours in proxy_colours, its fills in image_fill):
+the PDE helpers, the surface it builds around a body inside a wider mask, and -- on a synthetic subject
+in a skirt -- the skirt's width from the side."""
 
 from __future__ import annotations
 
@@ -7,18 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from humanvdm_core.clothed_proxy import (
-    PARTS,
-    face_colour,
-    harmonic_extension,
-    median_colour,
-    nearest_fill,
-    remove_spikes,
-    row_medians,
-    run_halfdepth,
-    smooth_hands,
-    unseen_side_colours,
-)
+from humanvdm_core.body.parts import PARTS
+from humanvdm_core.clothed_proxy import remove_spikes, run_halfdepth, smooth_hands
+from humanvdm_core.image_fill import harmonic_extension, nearest_fill
+from humanvdm_core.proxy_colours import face_colour, median_colour, row_medians, unseen_side_colours
 
 
 def test_run_halfdepth_gives_round_cross_sections():
@@ -127,7 +120,7 @@ def test_what_one_arm_holds_stays_off_the_other_arms_back():
     rows 20-60. Coloured per side, the left arm's back keeps the sleeve's colour (one median over both
     arms would take the folder's, as the folder covers more pixels there); a body without sides is
     coloured as before."""
-    from humanvdm_core.clothed_proxy import side_of_joints
+    from humanvdm_core.body.parts import side_of_joints
 
     size = 100
     sleeve, folder = np.array((0.7, 0.75, 0.9), np.float32), np.array((0.2, 0.2, 0.2), np.float32)
@@ -155,7 +148,7 @@ def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
     skin colour the back of the V's rows within NECKLINE_DEPTH of the shoulders is the shirt; below them,
     and where the front shows only skin, the back takes the row's median as before; without a skin
     colour the V's rows take the median of all their pixels (skin)."""
-    from humanvdm_core.clothed_proxy import NECKLINE_DEPTH
+    from humanvdm_core.proxy_colours import NECKLINE_DEPTH
 
     size = 100
     shirt, skin = np.array((0.93, 0.93, 0.93), np.float32), np.array((0.85, 0.62, 0.5), np.float32)
@@ -708,7 +701,7 @@ def test_the_far_side_of_a_head_photographed_in_profile_is_a_head_seen_from_that
 
 
 def test_outside_of_keeps_enclosed_holes_apart():
-    from humanvdm_core.clothed_proxy import outside_of
+    from humanvdm_core.image_fill import outside_of
 
     ring = np.zeros((30, 30), bool)
     ring[5:25, 5:25] = True
@@ -865,7 +858,7 @@ def test_clothes_and_shoes_give_the_torso_and_feet_thickness_and_leave_the_head_
 def test_the_hair_colour_leaves_out_a_forehead_showing_at_the_top_of_the_head():
     """Hair drawn back (or a high hairline) shows the forehead in the top band of the head: the back of the
     head takes the hair's colour, not a mix of hair and skin (before: the per-channel median of the band)."""
-    from humanvdm_core.body_prior import hair_colour
+    from humanvdm_core.proxy_colours import hair_colour
 
     hair, skin = np.array([0.17, 0.12, 0.1], np.float32), np.array([0.85, 0.66, 0.55], np.float32)
     image = np.ones((200, 200, 3), np.float32)
@@ -891,7 +884,7 @@ def test_the_hair_colour_looks_below_hands_resting_on_the_head():
     """Hands resting on the crown fill the top band of the head with skin: the hair showing between them
     and the face, down to 40 % of the head, gives the colour (before: the band's median, the hands'
     skin: a bald head from behind). A bald head, the same skin above, keeps the skin."""
-    from humanvdm_core.body_prior import hair_colour
+    from humanvdm_core.proxy_colours import hair_colour
 
     hair, skin = np.array([0.17, 0.12, 0.1], np.float32), np.array([0.85, 0.66, 0.55], np.float32)
     image = np.ones((200, 200, 3), np.float32)

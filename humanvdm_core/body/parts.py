@@ -1,0 +1,66 @@
+"""Body parts and sides of a rigged body, from its joint names and skinning weights.
+
+:data:`PARTS` names the parts (torso, head, arms, hands, legs, feet); a joint belongs to the first part
+one of whose name fragments its name holds (Anny's and SMPL/SMPL-X's rigs; the torso otherwise), and a
+joint's side is the body's left (+1: Anny's ``.L``, SMPL's ``left_``), right (-1) or the midline (0).
+A vertex takes the part that holds the largest sum of its skinning weights, and the side that holds
+more than half of them (else the midline).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+PARTS = ("torso", "head", "arms", "hands", "legs", "feet")
+
+# joint-name fragments -> part (first match wins); Anny's and SMPL/SMPL-X's rigs
+_PART_RULES = (
+    ("head", ("head", "eye", "jaw")),
+    ("hands", ("wrist", "finger", "metacarpal", "hand", "thumb", "index", "middle", "ring", "pinky")),
+    ("arms", ("upperarm", "lowerarm", "shoulder", "elbow")),
+    ("feet", ("foot", "toe", "ankle")),
+    ("legs", ("upperleg", "lowerleg", "pelvis.", "hip", "knee")),
+)
+
+
+def part_of_joints(joint_names: list[str]) -> np.ndarray:
+    """(J,) int index into :data:`PARTS` for each joint name (torso unless a rule matches)."""
+    out = np.zeros(len(joint_names), np.int64)
+    for j, name in enumerate(joint_names):
+        low = name.lower()
+        for part, keys in _PART_RULES:
+            if any(k in low for k in keys):
+                out[j] = PARTS.index(part)
+                break
+    return out
+
+
+def vertex_parts(skinning_weights: np.ndarray, joint_names: list[str]) -> np.ndarray:
+    """(V,) int part of each body vertex: the part with the largest summed skinning weight."""
+    joint_part = part_of_joints(joint_names)
+    per_part = np.zeros((skinning_weights.shape[0], len(PARTS)))
+    for p in range(len(PARTS)):
+        per_part[:, p] = skinning_weights[:, joint_part == p].sum(axis=1)
+    return per_part.argmax(axis=1)
+
+
+def side_of_joints(joint_names: list[str]) -> np.ndarray:
+    """(J,) int: +1 for a joint on the body's left (Anny's ``.L``, SMPL's ``left_``), -1 on its right, 0
+    on the midline."""
+    out = np.zeros(len(joint_names), np.int64)
+    for j, name in enumerate(joint_names):
+        low = name.lower()
+        if low.endswith(".l") or low.startswith("left"):
+            out[j] = 1
+        elif low.endswith(".r") or low.startswith("right"):
+            out[j] = -1
+    return out
+
+
+def vertex_sides(skinning_weights: np.ndarray, joint_names: list[str]) -> np.ndarray:
+    """(V,) int side of each body vertex (+1 left, -1 right, 0 midline): the side whose joints hold
+    most of its skinning weight, when that is more than half of it."""
+    side = side_of_joints(joint_names)
+    left = skinning_weights[:, side == 1].sum(axis=1)
+    right = skinning_weights[:, side == -1].sum(axis=1)
+    return np.where(left > 0.5, 1, np.where(right > 0.5, -1, 0)).astype(np.int64)
