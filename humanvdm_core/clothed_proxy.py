@@ -29,7 +29,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
    (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of
    the grid (:func:`add_clothing`), so a shirt, a sweater or a jacket has some thickness from the side,
-   shoes are longer than bare feet, and no ledge forms at the arms, hips, neck or ankles.
+   shoes are longer than bare feet, and no ledge forms at the arms, hips, neck or ankles. Where the mask
+   stands out beyond the body at both sides in the torso's (the legs') rows (:func:`garment_margins`: a
+   puffy jacket, a coat, armour, wide trousers), the torso (the legs) moves that far instead, between
+   :data:`GARMENT_NOISE` and :data:`GARMENT_MAX`: a garment is about as thick in front and behind as it
+   is wide beyond the body.
 5. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
    equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
@@ -107,6 +111,10 @@ ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane)
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
 CLOTHING = {"torso": 0.02, "feet": 0.025}
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
+# ... or, for the torso and the legs, as far as the person's mask stands out beyond the body at both sides
+# (garment_margins), when that is at least GARMENT_NOISE (a grid pixel) and at most GARMENT_MAX
+GARMENT_NOISE = 0.01
+GARMENT_MAX = 0.06
 SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
@@ -355,16 +363,41 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
 
 # ----------------------------------------------------------------------------- the proxy
 
-def add_clothing(maps: dict, body: np.ndarray, grid: int) -> None:
-    """Move the body's nearest surface towards the camera by ``CLOTHING[part]`` where it is that part (the
-    torso: a shirt or a jacket; the feet: shoes), and its farthest surface as far away where that is the
-    part, each faded out over :data:`CLOTHING_FEATHER` of the ``grid`` (a Gaussian of the part's
-    indicator), so no ledge forms where an arm crosses the torso, the torso meets the hips and the neck,
-    or the feet meet the legs. In place on ``maps["front"]`` / ``maps["back"]``."""
+def garment_margins(maps: dict, body: np.ndarray, person: np.ndarray, metres_per_px: float) -> dict[str, float]:
+    """How far the person's mask (``person``, grid pixels) stands out beyond the body's silhouette at the
+    sides, per part (torso, legs), in metres: in each row where the part is the body's nearest surface,
+    the smaller of the left and the right margin (the mask's run beyond the run of body pixels holding
+    the part), the median over those rows. The smaller side, so a bag or a binder held beside one side
+    does not count; a coat, a puffy jacket, armour or wide trousers stand out on both."""
+    out = {}
+    for part in ("torso", "legs"):
+        gaps = []
+        for y in np.nonzero((body & (maps["front_part"] == PARTS.index(part))).any(axis=1))[0]:
+            cols = np.nonzero(body[y] & (maps["front_part"][y] == PARTS.index(part)))[0]
+            sides = []
+            for start, step in ((cols.min(), -1), (cols.max(), 1)):
+                x = start
+                while 0 <= x + step < body.shape[1] and body[y, x + step]:
+                    x += step
+                edge = x
+                while 0 <= x + step < body.shape[1] and person[y, x + step]:
+                    x += step
+                sides.append(abs(x - edge))
+            gaps.append(min(sides))
+        out[part] = float(np.median(gaps)) * metres_per_px if gaps else 0.0
+    return out
+
+
+def add_clothing(maps: dict, body: np.ndarray, grid: int, clothing: dict[str, float] | None = None) -> None:
+    """Move the body's nearest surface towards the camera by ``clothing[part]`` (default :data:`CLOTHING`)
+    where it is that part (the torso: a shirt or a jacket; the feet: shoes), and its farthest surface as far
+    away where that is the part, each faded out over :data:`CLOTHING_FEATHER` of the ``grid`` (a Gaussian of
+    the part's indicator), so no ledge forms where an arm crosses the torso, the torso meets the hips and
+    the neck, or the feet meet the legs. In place on ``maps["front"]`` / ``maps["back"]``."""
     k = max(3, int(CLOTHING_FEATHER * grid) | 1)
     for key, sign in (("front", -1.0), ("back", 1.0)):
         margin = np.zeros(body.shape, np.float32)
-        for part, metres in CLOTHING.items():
+        for part, metres in (CLOTHING if clothing is None else clothing).items():
             inside = ((maps[key + "_part"] == PARTS.index(part)) & body).astype(np.float32)
             margin += metres * cv2.GaussianBlur(inside, (k, k), 0)
         maps[key] = maps[key] + sign * margin * body
@@ -509,7 +542,13 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         arm = body & np.isin(maps["back_part"], limbs) & ~placed("back")
         pull = np.where(arm, np.clip(maps["back"] - ref - ARM_REACH, 0.0, None) * fade, 0.0)
         maps["back"] = np.maximum(maps["back"] - pull, maps["front"])
-    add_clothing(maps, body, g)
+    # a garment that stands out beyond the body at both sides stands as far out in front and behind
+    margins = garment_margins(maps, body, person_g, float(np.median(maps["front"][body])) / fx)
+    clothing = dict(CLOTHING)
+    for part, metres in margins.items():
+        if metres >= GARMENT_NOISE:
+            clothing[part] = min(max(clothing.get(part, 0.0), metres), GARMENT_MAX)
+    add_clothing(maps, body, g, clothing)
     smooth_hands(maps, body, g)
     mid_body = 0.5 * (maps["front"] + maps["back"])
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)

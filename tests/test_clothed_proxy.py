@@ -855,6 +855,46 @@ def test_clothes_and_shoes_give_the_torso_and_feet_thickness_and_leave_the_head_
     assert steps.max() < 0.6 * 2 * clothes, steps  # faded, not a ledge at the part boundary (y = 0.6)
 
 
+@pytest.mark.parametrize("sides", [2, 1])
+def test_a_garment_standing_out_at_both_sides_stands_as_far_out_in_front_and_behind(sides):
+    """The cylinder "body" (0.3 m thick) in a mask 5 cm wider at both sides over the torso's rows (a puffy
+    jacket, armour): from the side its torso is 2 x 5 cm thicker than the body; wider at one side only (a
+    bag held beside it), it keeps CLOTHING["torso"], and the head keeps the body's thickness either way."""
+    import cv2
+    import trimesh
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import CLOTHING, build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    v, f, w, names = _cylinder_body()
+    v, f = trimesh.remesh.subdivide_to_size(v, f, max_edge=0.04)
+    w = np.stack([v[:, 1] < 0.6, v[:, 1] >= 0.6], axis=1).astype(np.float64)
+    size, margin = 160, 0.05
+    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    body_mask = render_views(TexturedMesh(v, f), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    px = int(round(margin * cam.K[0, 0, 0] / 3.2))  # 5 cm at the body's distance
+    wider = cv2.dilate(body_mask.astype(np.uint8), np.ones((1, 2 * px + 1), np.uint8)).astype(bool)
+    if sides == 1:
+        wider[:, : size // 2] = body_mask[:, : size // 2]
+    rows = np.nonzero(body_mask.any(axis=1))[0]
+    neck_row = rows.min() + int(0.2 / 1.6 * (rows.max() - rows.min()))  # 0.2 m below the top: the torso from here
+    mask = np.where(np.arange(size)[:, None] >= neck_row, wider, body_mask).astype(np.float32)
+    proxy = build_clothed_proxy(v, f, w, names, cam, np.full((size, size, 3), 0.5, np.float32), mask, grid=size)
+    p = proxy.mesh.vertices
+    centre = np.abs(p[:, 0]) < 0.03
+
+    def thickness(y: float) -> float:
+        row = centre & (np.abs(p[:, 1] - y) < 0.03)
+        return float(p[row, 2].max() - p[row, 2].min())
+
+    expected = 0.3 + 2 * (margin if sides == 2 else CLOTHING["torso"])
+    assert abs(thickness(0.0) - expected) < 0.015, (thickness(0.0), expected)
+    assert abs(thickness(0.75) - 0.3) < 0.012, thickness(0.75)  # the head
+
+
 def test_the_hair_colour_leaves_out_a_forehead_showing_at_the_top_of_the_head():
     """Hair drawn back (or a high hairline) shows the forehead in the top band of the head: the back of the
     head takes the hair's colour, not a mix of hair and skin (before: the per-channel median of the band)."""
