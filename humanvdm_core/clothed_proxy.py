@@ -365,25 +365,27 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
 
 def garment_margins(maps: dict, body: np.ndarray, person: np.ndarray, metres_per_px: float) -> dict[str, float]:
     """How far the person's mask (``person``, grid pixels) stands out beyond the body's silhouette at the
-    sides, per part (torso, legs), in metres: in each row where the part is the body's nearest surface,
-    the smaller of the left and the right margin (the mask's run beyond the run of body pixels holding
-    the part), the median over those rows. The smaller side, so a bag or a binder held beside one side
-    does not count; a coat, a puffy jacket, armour or wide trousers stand out on both."""
+    sides, per part (torso, legs), in metres: in each row, for each run of the mask that shows the part
+    as the body's nearest surface (a leg standing apart is a run of its own), the smaller of its left
+    and right margin beyond the body pixels there; the median over all of them. The smaller side, so a
+    bag or a binder held beside one side does not count; a coat, a puffy jacket, armour or wide trousers
+    stand out on both."""
     out = {}
     for part in ("torso", "legs"):
         gaps = []
-        for y in np.nonzero((body & (maps["front_part"] == PARTS.index(part))).any(axis=1))[0]:
-            cols = np.nonzero(body[y] & (maps["front_part"][y] == PARTS.index(part)))[0]
-            sides = []
-            for start, step in ((cols.min(), -1), (cols.max(), 1)):
-                x = start
-                while 0 <= x + step < body.shape[1] and body[y, x + step]:
-                    x += step
-                edge = x
-                while 0 <= x + step < body.shape[1] and person[y, x + step]:
-                    x += step
-                sides.append(abs(x - edge))
-            gaps.append(min(sides))
+        shown = body & (maps["front_part"] == PARTS.index(part))
+        for y in np.nonzero(shown.any(axis=1))[0]:
+            edges = np.diff(np.concatenate([[0], person[y].astype(np.int8), [0]]))
+            for a, b in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0], strict=True):
+                cols = np.nonzero(shown[y, a:b])[0]
+                if len(cols) == 0:
+                    continue
+                left, right = cols.min(), cols.max()
+                while left > 0 and body[y, a + left - 1]:
+                    left -= 1
+                while a + right + 1 < b and body[y, a + right + 1]:
+                    right += 1
+                gaps.append(min(left, b - a - 1 - right))
         out[part] = float(np.median(gaps)) * metres_per_px if gaps else 0.0
     return out
 
