@@ -281,8 +281,6 @@ def _smooth(values: np.ndarray, faces: np.ndarray, passes: int, update: np.ndarr
     return out
 
 
-
-
 def colour_body(vertices: np.ndarray, faces: np.ndarray, camera: Cameras, image: np.ndarray, mask: np.ndarray,
                 head_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex colours (V, 3) of a body seen in one view (contract step 5) and the visibility (V,) bool.

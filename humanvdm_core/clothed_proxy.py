@@ -122,7 +122,6 @@ SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 
 
-
 @dataclass
 class ClothedProxy:
     """A closed, textured, skinned surface of the person (see the module docstring)."""
@@ -151,14 +150,6 @@ class ClothedProxy:
             "skin_joints": self.skin_joints, "skin_weights": self.skin_weights, "front": self.front,
             "body_fraction": np.float64(self.body_fraction),
         }, schema=SCHEMA, version=SCHEMA_VERSION)
-
-
-
-
-
-
-
-
 
 
 # ----------------------------------------------------------------------------- body maps
@@ -238,13 +229,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
             "back_side": side_map(far), "trunk_front": trunk_front, "trunk_back": trunk_back}
 
 
-# ----------------------------------------------------------------------------- PDE helpers
-
-
-
-
-
-
+# ----------------------------------------------------------------------------- thickness
 
 def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``domain``, in pixels: the round cross-section's half-depth ``sqrt(a^2 - (x - c)^2)`` of
@@ -292,32 +277,6 @@ def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border:
     return 0.5 * (sheets[0] + sheets[1]), half
 
 
-
-
-
-
-
-
-
-
-# ----------------------------------------------------------------------------- colour
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, rgb: np.ndarray,
               mask: np.ndarray, camera: Cameras, hair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Long hair as geometry on the unseen side (contract step 7). Where the photo shows a hair curtain
@@ -357,8 +316,6 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     new_back = np.where(skull_hair, back + HAIR_DEPTH, new_back)
     front = mid - half
     return 0.5 * (front + new_back), 0.5 * (new_back - front)
-
-
 
 
 # ----------------------------------------------------------------------------- the proxy
