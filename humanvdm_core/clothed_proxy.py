@@ -347,16 +347,17 @@ def garment_margins(maps: dict, body: np.ndarray, person: np.ndarray, metres_per
     return out
 
 
-def add_clothing(maps: dict, body: np.ndarray, grid: int, clothing: dict[str, float] | None = None) -> None:
-    """Move the body's nearest surface towards the camera by ``clothing[part]`` (default :data:`CLOTHING`)
-    where it is that part (the torso: a shirt or a jacket; the feet: shoes), and its farthest surface as far
-    away where that is the part, each faded out over :data:`CLOTHING_FEATHER` of the ``grid`` (a Gaussian of
-    the part's indicator), so no ledge forms where an arm crosses the torso, the torso meets the hips and
-    the neck, or the feet meet the legs. In place on ``maps["front"]`` / ``maps["back"]``."""
+def add_clothing(maps: dict, body: np.ndarray, grid: int, clothing: dict[str, float]) -> None:
+    """Move the body's nearest surface towards the camera by ``clothing[part]`` metres (:data:`CLOTHING`,
+    or a garment's margin, :func:`garment_margins`) where it is that part (the torso: a shirt or a jacket;
+    the feet: shoes), and its farthest surface as far away where that is the part, each faded out over
+    :data:`CLOTHING_FEATHER` of the ``grid`` (a Gaussian of the part's indicator), so no ledge forms where
+    an arm crosses the torso, the torso meets the hips and the neck, or the feet meet the legs. In place
+    on ``maps["front"]`` / ``maps["back"]``."""
     k = max(3, int(CLOTHING_FEATHER * grid) | 1)
     for key, sign in (("front", -1.0), ("back", 1.0)):
         margin = np.zeros(body.shape, np.float32)
-        for part, metres in (CLOTHING if clothing is None else clothing).items():
+        for part, metres in clothing.items():
             inside = ((maps[key + "_part"] == PARTS.index(part)) & body).astype(np.float32)
             margin += metres * cv2.GaussianBlur(inside, (k, k), 0)
         maps[key] = maps[key] + sign * margin * body
