@@ -29,11 +29,13 @@ SV3D ones first, so that gsplat's first-use compile, started beside this script,
   ``--iterations`` steps (0: the preset's 30,000) on those frames and the ``fit-smpl`` body (written
   with ``uv_resolution`` 569, the preset's, so no body model is needed there): each stage's seconds,
   the training's seconds per step and its 30,000-step estimate, the Gaussian count and the training
-  PSNR; the stages' logs and the turntable GIF are copied beside ``--out``.
+  PSNR; the stages' logs and the turntable GIF are copied beside ``--out``, and with ``--keep-gaussians
+  FILE`` the trained Gaussians (``gaussians.npz``'s arrays that render them, compressed) to FILE, for
+  ``bench_protocol --gaussians``.
 
 Writes ``--out`` (default ``benchmarks/results/gpu.json``) with the device named.
 Run: ``python -m benchmarks.bench_gpu [--gsplat-ready /tmp/gsplat_ready] [--out F] [--smoke]``, or
-``--sections stage --orbit DIR --body body.npz [--iterations N]``.
+``--sections stage --orbit DIR --body body.npz [--iterations N] [--keep-gaussians FILE]``.
 """
 
 from __future__ import annotations
@@ -321,7 +323,8 @@ def _stage(name: str, argv: list[str], log_path: Path) -> tuple[float, str]:
     return wall, proc.stdout + proc.stderr
 
 
-def stage_section(orbit: Path, body: Path, iterations: int, out_dir: Path, smoke: bool) -> dict:
+def stage_section(orbit: Path, body: Path, iterations: int, out_dir: Path, smoke: bool,
+                  keep_gaussians: Path | None = None) -> dict:
     """upscale -> interpolate -> splat-optimize (``full``) as the pipeline runs them; see the docstring."""
     import re
     import shutil
@@ -368,6 +371,12 @@ def stage_section(orbit: Path, body: Path, iterations: int, out_dir: Path, smoke
     gif = work / "gaussians" / "turntable.gif"
     if gif.exists():
         shutil.copy(gif, out_dir / "gpu_stage_turntable.gif")
+    if keep_gaussians:
+        import numpy as np
+
+        with np.load(work / "gaussians" / "gaussians.npz") as g:
+            keep = ("__schema__", "__schema_version__", "means", "quats", "scales", "opacities", "colors")
+            np.savez_compressed(keep_gaussians, **{k: g[k] for k in keep})
     shutil.rmtree(work, ignore_errors=True)
     print("stage", out, flush=True)
     return out
@@ -385,6 +394,7 @@ def main() -> None:
     parser.add_argument("--orbit", type=Path, help="stage section: a diffuse orbit folder (frames, cameras, proxy)")
     parser.add_argument("--body", type=Path, help="stage section: a fit-smpl body.npz with uv_resolution 569")
     parser.add_argument("--iterations", type=int, default=0, help="stage section: training steps (0: the preset's)")
+    parser.add_argument("--keep-gaussians", type=Path, help="stage section: save the trained Gaussians here (.npz)")
     args = parser.parse_args()
     if "stage" in args.sections.split(",") and not (args.orbit and args.body):
         parser.error("--sections stage needs --orbit and --body")
@@ -439,7 +449,8 @@ def main() -> None:
         save()
     run("rasterize", rasterize_section, dev, backends, args.smoke)
     run("train_step", train_section, dev, backends, args.smoke)
-    run("stage", stage_section, args.orbit, args.body, args.iterations, Path(args.out).parent, args.smoke)
+    run("stage", stage_section, args.orbit, args.body, args.iterations, Path(args.out).parent, args.smoke,
+        args.keep_gaussians)
     print(f"wrote {args.out} in {doc['wall_s']} s", flush=True)
 
 

@@ -51,6 +51,7 @@ worktree runs its own code (the venv's ``humanvdm`` script would import the edit
 
 Run:  .venv/bin/python -m benchmarks.bench_protocol [--subjects mei eric soldier] [--label after]
       [--skip-pipeline] [--work DIR] [--set splat-optimize.preset=tiny] [--turn 90 --label profile]
+      [--skip-pipeline --subjects mei --gaussians gaussians.npz --label full_gpu]  (Gaussians trained elsewhere)
 """
 
 from __future__ import annotations
@@ -205,7 +206,8 @@ def run_scan(folder: Path, work: Path, args) -> dict:
     if args.orbit_only:
         g_rgb, g_a = np.ones((len(VIEWS), args.eval_size, args.eval_size, 3), np.float32), None
     else:
-        g_rgb, g_a = render_gaussians(load_gaussians(run_dir / "splat-optimize" / "gaussians"), cams, WHITE)
+        g_rgb, g_a = render_gaussians(load_gaussians(args.gaussians or run_dir / "splat-optimize" / "gaussians"),
+                                      cams, WHITE)
 
     def prep(rgb, alpha):
         return (resized if args.no_reframe else reframe)(rgb, alpha, args.eval_size)
@@ -309,6 +311,9 @@ def main() -> int:
     parser.add_argument("--work", type=Path, default=None,
                         help=f"persistent scratch folder (default {DEFAULT_WORK}/<label>)")
     parser.add_argument("--skip-pipeline", action="store_true", help="rescore the runs already in --work")
+    parser.add_argument("--gaussians", type=Path, default=None,
+                        help="with --skip-pipeline and one subject: score these Gaussians (a gaussians.npz, e.g. "
+                             "bench_gpu --keep-gaussians) instead of the run's splat-optimize output")
     parser.add_argument("--orbit-only", action="store_true",
                         help="run the pipeline until diffuse and score the orbit only (no Gaussians)")
     parser.add_argument("--set", action="append", metavar="STAGE.PARAM=VALUE",
@@ -328,6 +333,8 @@ def main() -> int:
     parser.add_argument("--merge", action="store_true",
                         help="keep scans of an earlier protocol_<label>.json that this run does not redo")
     args = parser.parse_args()
+    if args.gaussians and not (args.skip_pipeline and args.subjects and len(args.subjects) == 1):
+        parser.error("--gaussians needs --skip-pipeline and one --subjects")
     torch.set_num_threads(1)
 
     if not SCANS.is_dir():
