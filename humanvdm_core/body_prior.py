@@ -38,8 +38,8 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    than the landmarks show (a lean of theirs under 10 deg counts as upright), an arm held out to the
    side kept in the body's plane, a hand the photo shows on the head touching it, a person standing
    still kept on straight legs with the feet below the hips). An arm whose 2D keypoints the detector's
-   own in-plane 3D landmarks contradict (far shorter: :func:`humanvdm_core.body.fit.arms_read_short`,
-   armour or a drawn figure) is first redrawn along those landmarks (:func:`~humanvdm_core.body.fit.rebuild_arms`),
+   own in-plane 3D landmarks contradict (far shorter: :func:`humanvdm_core.body.landmarks.arms_read_short`,
+   armour or a drawn figure) is first redrawn along those landmarks (:func:`~humanvdm_core.body.landmarks.rebuild_arms`),
    with a warning.
 5. Geometry ``clothed`` (default): the clothed proxy (:func:`humanvdm_core.clothed_proxy.build_clothed_proxy`)
    -- a closed surface whose input view is the person's whole mask, the body's depth carried out to
@@ -516,14 +516,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     import torch
 
     from humanvdm_core.body import load_body_model
-    from humanvdm_core.body.fit import (
-        FitOptions,
-        FrameObservation,
-        arms_read_short,
-        fit_body,
-        hands_on_head,
-        rebuild_arms,
-    )
+    from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body
+    from humanvdm_core.body.landmarks import arms_read_short, hands_on_head, rebuild_arms
     from humanvdm_core.perception.facing import estimate_facing
     from humanvdm_core.workflow.errors import ConfigError
 

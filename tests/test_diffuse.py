@@ -344,7 +344,7 @@ def test_a_photo_cut_off_at_the_thighs_keeps_the_legs_it_does_not_show_hanging(t
     one-sided silhouette must not fold them behind the thighs it sees. Measured at 256², 60 iterations:
     knee bends 6 / 7 deg and the proxy 0.25 of its height deep from the side (before, when the photo's
     edge counted as the person's: 31 / 37 deg and 0.73 deep; at 150 iterations the legs folded flat)."""
-    from humanvdm_core.body.fit import LEGS, _angle_deg
+    from humanvdm_core.body.landmarks import LEGS, angle_deg
     from humanvdm_core.body_prior import build_body_proxy
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.io import write_png
@@ -363,7 +363,7 @@ def test_a_photo_cut_off_at_the_thighs_keeps_the_legs_it_does_not_show_hanging(t
     write_png(photo, seen[:cut, :, :3])
     proxy = build_body_proxy(photo, size=SIZE, iterations=ITERATIONS)
     c = proxy.coco17
-    bends = [_angle_deg(c[k] - c[h], c[a] - c[k]) for h, k, a in LEGS]
+    bends = [angle_deg(c[k] - c[h], c[a] - c[k]) for h, k, a in LEGS]
     v = np.asarray(proxy.clothed.mesh.vertices)
     depth = float(np.ptp(v[:, 2]) / np.ptp(v[:, 1]))
     print(f"knee bends {bends[0]:.0f} / {bends[1]:.0f} deg, proxy depth {depth:.2f} of its height")

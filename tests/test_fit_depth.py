@@ -295,7 +295,7 @@ def test_an_arm_held_out_whose_wrist_is_read_short_stays_in_the_image_plane(phot
 def test_reach_directions_only_for_the_elbows_and_wrists_of_arms_held_out():
     """reach_directions on hand-made keypoints: the left arm out to the side gets its shoulder -> wrist
     direction at the elbow and the wrist; the hanging right arm, and every other joint, get none."""
-    from humanvdm_core.body.fit import held_out_arms, reach_directions
+    from humanvdm_core.body.landmarks import held_out_arms, reach_directions
 
     kp = np.zeros((17, 2))
     kp[[5, 6, 11, 12]] = [[120, 100], [80, 100], [115, 200], [85, 200]]  # shoulders, hips: torso 100 px
@@ -318,7 +318,7 @@ def test_facing_shoulders_turns_a_slight_turn_back_to_the_camera_and_keeps_a_rea
     in the image plane); 9 deg keeps half of what lies beyond the noise (4 deg: the ramp from 6 to 12
     deg), 20 deg all of it; a shoulder line read from behind (turned ~180 deg), a photo whose arms hang
     and every other joint stay as they are."""
-    from humanvdm_core.body.fit import TURN_NOISE_DEG, TURN_TRUSTED_DEG, facing_shoulders
+    from humanvdm_core.body.landmarks import TURN_NOISE_DEG, TURN_TRUSTED_DEG, facing_shoulders
 
     up = np.array([0.0, -1.0, 0.0])
     conf = np.ones(17, np.float32)
@@ -413,7 +413,7 @@ def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
 
 def test_standing_still_tells_a_stance_from_a_stride_a_seat_and_hidden_legs():
     """standing_still on hand-made keypoints (a person 400 px tall)."""
-    from humanvdm_core.body.fit import standing_still
+    from humanvdm_core.body.landmarks import standing_still
 
     kp = np.zeros((17, 2))
     kp[[5, 6, 11, 12]] = [[230, 100], [170, 100], [220, 200], [180, 200]]
@@ -439,7 +439,7 @@ def test_standing_still_tells_a_stance_from_a_stride_a_seat_and_hidden_legs():
 
 def test_frontal_arms_moves_only_arms_held_out_to_the_side():
     """frontal_arms on hand-made landmarks (a level camera: the frontal plane is the image plane)."""
-    from humanvdm_core.body.fit import frontal_arms
+    from humanvdm_core.body.landmarks import frontal_arms
 
     up = np.array([0.0, -1.0, 0.0])
     world = np.zeros((17, 3))
@@ -479,7 +479,7 @@ def test_arms_read_short_tells_a_detector_contradicting_itself_from_foreshorteni
     elbow while its 3D landmarks lie in the image plane is read short and redrawn along them; an arm
     pointing at the camera (short in 2D because its 3D direction leaves the plane), an arm of normal
     length and an unsure arm are not."""
-    from humanvdm_core.body.fit import FOREARM_TORSO, UPPER_ARM_TORSO, arms_read_short, rebuild_arms
+    from humanvdm_core.body.landmarks import FOREARM_TORSO, UPPER_ARM_TORSO, arms_read_short, rebuild_arms
 
     world = np.zeros((17, 3))
     world[[5, 6]] = [[0.2, -0.5, 0.0], [-0.2, -0.5, 0.0]]
@@ -540,7 +540,7 @@ def test_onto_the_head_moves_only_wrists_on_the_head():
     wrist beside the face but 0.25 m before the nose moves back to the head's middle, as does one on
     the crown taken level with the ears; a wrist at the hip, an unsure one, or any wrist when the head
     is unsure, keeps its depth; nothing else moves."""
-    from humanvdm_core.body.fit import hands_on_head, onto_the_head
+    from humanvdm_core.body.landmarks import hands_on_head, onto_the_head
 
     world = np.zeros((17, 3))
     world[0] = [0.0, -0.65, -0.2]  # nose, 0.1 m before the ears

@@ -73,6 +73,9 @@ Contract:
     every standing render; on real people in trousers its 2D shins come out a fifth short, so the
     2D keypoints alone bend them too) and the fit put their feet 0.1-0.2 m behind the hips.
 
+- The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
+  :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
+  :func:`standing_still`) live in :mod:`humanvdm_core.body.landmarks`, with their thresholds.
 - Left/right confusion: a keypoint detector often swaps the person's left and right on back and
   side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
   that better agrees with the current 3D estimate is used; it is decided after phase 1 and again
@@ -105,7 +108,16 @@ import numpy as np
 import torch
 
 from humanvdm_core.body import load_body_model
-from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix
+from humanvdm_core.body.landmarks import (
+    LEGS,
+    facing_shoulders,
+    frontal_arms,
+    onto_the_head,
+    reach_directions,
+    standing_still,
+    torso_length,
+)
+from humanvdm_core.body.model import COCO17_NAMES, BodyModel, BodyOutput, BodyParams
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.workflow.errors import ConfigError, HumanVDMError, InputError
 from humanvdm_core.workflow.progress import report
@@ -148,49 +160,10 @@ UPRIGHT_WEIGHT = 20.0  # default FitOptions.upright_weight
 TORSO_FREE_DEG = 1.5  # a torso within this angle of the arc from upright to the detector's torso costs nothing
 TORSO_NOISE_DEG = 10.0  # the detector's torso this close to upright counts as upright ...
 TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (between: a linear ramp)
-# A single photo's shoulder line turned about the vertical (see facing_shoulders): this close to facing the
-# camera counts as facing it, this far or more counts whole (between: a linear ramp)
-TURN_NOISE_DEG = 6.0
-TURN_TRUSTED_DEG = 12.0
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
-# An arm held out to the side (see held_out_arms): in the image, the upper arm at least ARM_OUT_DEG from
-# hanging straight down, the forearm within ARM_STRAIGHT_DEG of the upper arm's line, the upper arm at
-# least ARM_SEEN_LENGTH of the torso's length (not pointing at the camera), its three joints at least
-# ARM_CONFIDENCE sure.
-ARM_OUT_DEG = 35.0
-ARM_STRAIGHT_DEG = 35.0
-ARM_SEEN_LENGTH = 0.4
-ARM_CONFIDENCE = 0.5
-# An arm the detector reads short (see arms_read_short): a bone whose 3D landmarks lie at least
-# ARM_IN_PLANE in the image plane (the in-plane share of its unit direction) while its 2D keypoints
-# show less than ARM_READ_SHORT of the length that direction implies, the bone's length taken as
-# UPPER_ARM_TORSO (FOREARM_TORSO) of the 2D torso's (typical adult proportions).
-ARM_IN_PLANE = 0.7
-ARM_READ_SHORT = 0.6
-UPPER_ARM_TORSO = 0.6
-FOREARM_TORSO = 0.5
-ARMS = ((5, 7, 9), (6, 8, 10))  # COCO-17 shoulder, elbow, wrist: left, right
-# A hand on the head (see hands_on_head): the wrist's 3D landmark within HEAD_TOUCH (metres, across the
-# image plane) of the centre of the nose and the ears, all of them at least HEAD_CONFIDENCE sure.
-HEAD_TOUCH = 0.2
-HEAD_CONFIDENCE = 0.5
-WRISTS = (9, 10)  # COCO-17 left, right wrist
-# A person standing still (see standing_still): in the photo both legs' hips, knees and ankles at least
-# STANCE_CONFIDENCE sure, each thigh within STANCE_THIGH_DEG and shin within STANCE_SHIN_DEG of straight
-# down and the thigh at least STANCE_THIGH_LENGTH of the torso's length (not foreshortened: a seated or
-# crouching person's thighs point at the camera), the two ankles' rows within STANCE_ROWS of the
-# person's height (no stride), and the detector's 3D knees bent at most STANCE_BEND_DEG.
-STANCE_CONFIDENCE = 0.5
-STANCE_THIGH_DEG = 35.0
-STANCE_SHIN_DEG = 55.0
-STANCE_THIGH_LENGTH = 0.6
-STANCE_ROWS = 0.015
-STANCE_BEND_DEG = 50.0
 STANCE_WEIGHT = 10.0  # default FitOptions.stance_weight
 STANCE_KNEE_FREE_DEG = 10.0  # a knee bent less than this costs nothing ..
 STANCE_FEET_FREE = 0.05  # .. nor ankles this close (world units) to below the hips along the view
-LEGS = ((11, 13, 15), (12, 14, 16))  # COCO-17 hip, knee, ankle: left, right
-IMAGE_DOWN = np.array([0.0, 1.0])  # straight down in the image (pixel y grows downwards)
 
 
 @dataclass
@@ -344,16 +317,6 @@ def project(points: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> tuple[t
     return px, cam[..., 2]
 
 
-def _torso_length(points: np.ndarray) -> float:
-    """Distance from the hip centre to the shoulder centre of COCO-17 ``points`` (17, 2 or 3)."""
-    return float(np.linalg.norm(points[[5, 6]].mean(0) - points[[11, 12]].mean(0)))
-
-
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-9)
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-
-
 def _unit_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Angles (radians) between unit vectors along the last axis (broadcast), kept off 0 and pi."""
     return torch.acos((a * b).sum(-1).clamp(-1 + 1e-6, 1 - 1e-6))
@@ -369,198 +332,6 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     side = seen - (seen @ up)[:, None] * up[None]
     side = side / side.norm(dim=-1, keepdim=True).clamp(min=1e-9)
     return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
-
-
-def facing_shoulders(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
-                     up: np.ndarray) -> np.ndarray:
-    """The detector's 3D landmarks ``world`` (17, 3, camera axes) of a photo whose 2D ``keypoints``
-    (17, 2 pixels, ``confidences`` (17,)) show both arms held out to the side (:func:`held_out_arms`: a
-    T-pose, an A-pose, both arms at their length in the image plane, on the shoulder line), with the
-    shoulders and arms (COCO-17 5-10) turned about the vertical (``up``, the world's up in the camera's
-    axes) through the shoulders' middle, so the shoulder line's turn away from facing the camera is what
-    :data:`TURN_NOISE_DEG` / :data:`TURN_TRUSTED_DEG` keep of it: none within the first, all of it from
-    the second on, a linear ramp between. MediaPipe turns the shoulders of people who face the camera by
-    a few degrees (synthetic frontal renders, truth 0: 2.1 to 6.9 on the stability suite's, -1.2 to 3.1
-    on six walkers; the three.js Soldier 4.7), and an arm held out to the side, which follows the
-    shoulder line, then stands 0.1 m in front of or behind the body at the hand. Any other photo (an arm
-    that hangs or bends: a hand on the face is where the turn tells its depth), and a shoulder line read
-    turned more than 90 deg (a photo from behind), is left alone. Nothing else moves."""
-    out = np.asarray(world, np.float64).copy()
-    if len(held_out_arms(keypoints, confidences)) < 2:
-        return out.astype(np.float32)
-    up = np.asarray(up, np.float64) / max(float(np.linalg.norm(up)), 1e-12)
-    across = np.array([1.0, 0.0, 0.0]) - up[0] * up  # the camera's horizontal, in the horizontal plane
-    line = out[5] - out[6]
-    line = line - (line @ up) * up
-    if np.linalg.norm(across) < 1e-6 or np.linalg.norm(line) < 1e-6:
-        return out.astype(np.float32)
-    across /= np.linalg.norm(across)
-    turn = float(np.arctan2(np.cross(across, line) @ up, across @ line))
-    if abs(turn) > np.pi / 2:  # the shoulders read left-right swapped: their turn is not small
-        return out.astype(np.float32)
-    noise, trusted = np.radians(TURN_NOISE_DEG), np.radians(TURN_TRUSTED_DEG)
-    kept = abs(turn) if abs(turn) >= trusted else max(abs(turn) - noise, 0.0) * trusted / (trusted - noise)
-    rotation = axis_angle_to_matrix(torch.as_tensor((np.sign(turn) * kept - turn) * up)).numpy()
-    centre = 0.5 * (out[5] + out[6])
-    out[5:11] = (out[5:11] - centre) @ rotation.T + centre
-    return out.astype(np.float32)
-
-
-def held_out_arms(keypoints: np.ndarray, confidences: np.ndarray) -> list[int]:
-    """The arms (indices into :data:`ARMS`: 0 left, 1 right) that the 2D ``keypoints`` (17, 2 pixels,
-    ``confidences`` (17,)) show held out to the side: the upper arm at least :data:`ARM_OUT_DEG` from
-    hanging straight down, the forearm within :data:`ARM_STRAIGHT_DEG` of the upper arm's line, the
-    upper arm at least :data:`ARM_SEEN_LENGTH` of the torso's length (not pointing at the camera) and
-    its three joints at least :data:`ARM_CONFIDENCE` sure. A T-pose, an A-pose, raised arms, a wave."""
-    torso = _torso_length(keypoints)
-    out = []
-    for arm, (shoulder, elbow, wrist) in enumerate(ARMS):
-        upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
-        if (_angle_deg(upper_2d, IMAGE_DOWN) >= ARM_OUT_DEG and _angle_deg(upper_2d, fore_2d) <= ARM_STRAIGHT_DEG
-                and np.linalg.norm(upper_2d) >= ARM_SEEN_LENGTH * torso
-                and min(confidences[[shoulder, elbow, wrist]]) >= ARM_CONFIDENCE):
-            out.append(arm)
-    return out
-
-
-def reach_directions(keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarray:
-    """(17, 2) per COCO-17 joint the image direction along which the model's joint may lie past its
-    detection at no cost (see the module docstring): for the elbow and the wrist of each arm held out
-    to the side (:func:`held_out_arms`) the unit vector from the shoulder to the wrist in ``keypoints``
-    (17, 2 pixels); zero for every other joint."""
-    out = np.zeros((17, 2), np.float64)
-    for arm in held_out_arms(keypoints, confidences):
-        shoulder, elbow, wrist = ARMS[arm]
-        line = np.asarray(keypoints[wrist], np.float64) - np.asarray(keypoints[shoulder], np.float64)
-        if np.linalg.norm(line) > 1e-6:
-            out[[elbow, wrist]] = line / np.linalg.norm(line)
-    return out
-
-
-def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
-                 up: np.ndarray) -> np.ndarray:
-    """The detector's 3D landmarks ``world`` (17, 3, camera axes) with every arm held out to the side
-    (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``) turned into the
-    body's frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the
-    camera's axes); bone lengths are kept and nothing else moves.
-
-    MediaPipe tilts such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg
-    elevation: true -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a
-    T-pose, an A-pose, a wave). Arms that hang, bend (hands on the hips, holding a cup) or point at the
-    camera keep their depth."""
-    out = np.asarray(world, np.float64).copy()
-    normal = np.cross(out[5] - out[6], np.asarray(up, np.float64))
-    if np.linalg.norm(normal) < 1e-6:
-        return out.astype(np.float32)
-    normal /= np.linalg.norm(normal)
-    for arm in held_out_arms(keypoints, confidences):
-        shoulder, elbow, wrist = ARMS[arm]
-        bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
-        flat = [b - (b @ normal) * normal for b in bones]
-        if min(np.linalg.norm(f) for f in flat) < 1e-6:
-            continue
-        upper, fore = (f / np.linalg.norm(f) * np.linalg.norm(b) for f, b in zip(flat, bones, strict=True))
-        out[elbow] = out[shoulder] + upper
-        out[wrist] = out[elbow] + fore
-    return out.astype(np.float32)
-
-
-def arms_read_short(keypoints: np.ndarray, confidences: np.ndarray, world: np.ndarray) -> list[int]:
-    """The arms (indices into :data:`ARMS`: 0 left, 1 right) whose 2D ``keypoints`` (17, 2 pixels) the
-    detector's own 3D landmarks ``world`` (17, 3, camera axes) contradict: an upper arm or forearm
-    whose 3D direction lies in the image plane (:data:`ARM_IN_PLANE`) while its 2D length is under
-    :data:`ARM_READ_SHORT` of what that direction and the torso's 2D length imply, its joints at least
-    :data:`ARM_CONFIDENCE` sure (``confidences``). On the photos and renders here the ratio is 0.71 or
-    more; on an armoured game character in a T-pose MediaPipe puts a 2D wrist half way along the
-    forearm (0.54) or the wrists on the elbows (0.08-0.38, another render size), while its 3D arms and
-    the person's mask reach out sideways."""
-    torso = _torso_length(keypoints)
-    out = []
-    for arm, (shoulder, elbow, wrist) in enumerate(ARMS):
-        if min(confidences[[shoulder, elbow, wrist]]) < ARM_CONFIDENCE or torso <= 0:
-            continue
-        for (a, b), share in (((shoulder, elbow), UPPER_ARM_TORSO), ((elbow, wrist), FOREARM_TORSO)):
-            d = np.asarray(world[b], np.float64) - np.asarray(world[a], np.float64)
-            in_plane = float(np.hypot(d[0], d[1]) / max(np.linalg.norm(d), 1e-9))
-            seen = float(np.linalg.norm(keypoints[b] - keypoints[a]))
-            if in_plane >= ARM_IN_PLANE and seen < ARM_READ_SHORT * share * torso * in_plane:
-                out.append(arm)
-                break
-    return out
-
-
-def rebuild_arms(keypoints: np.ndarray, world: np.ndarray, arms: Sequence[int]) -> np.ndarray:
-    """``keypoints`` (17, 2 pixels) with the elbow and wrist of each of ``arms`` (indices into
-    :data:`ARMS`) redrawn from the shoulder along the detector's 3D bone directions (``world``, camera
-    axes, their x and y), the upper arm :data:`UPPER_ARM_TORSO` and the forearm :data:`FOREARM_TORSO`
-    of the torso's 2D length (a bone out of the image plane shows shorter, as its direction says)."""
-    out = np.asarray(keypoints, np.float64).copy()
-    torso = _torso_length(out)
-    for arm in arms:
-        shoulder, elbow, wrist = ARMS[arm]
-        for (a, b), share in (((shoulder, elbow), UPPER_ARM_TORSO), ((elbow, wrist), FOREARM_TORSO)):
-            d = np.asarray(world[b], np.float64) - np.asarray(world[a], np.float64)
-            out[b] = out[a] + share * torso * d[:2] / max(np.linalg.norm(d), 1e-9)
-    return out.astype(np.asarray(keypoints).dtype)
-
-
-def _sure_ears(confidences: np.ndarray) -> list[int]:
-    """The COCO-17 ears (3, 4) at least :data:`HEAD_CONFIDENCE` sure."""
-    return [e for e in (3, 4) if confidences[e] >= HEAD_CONFIDENCE]
-
-
-def hands_on_head(world: np.ndarray, confidences: np.ndarray) -> list[int]:
-    """The COCO-17 wrists (:data:`WRISTS`) that the detector's 3D landmarks ``world`` (17, 3, camera
-    axes, metres) place on the head: within :data:`HEAD_TOUCH` of the centre of the nose and the ears
-    across the image plane (x, y), the wrist, the nose and an ear at least :data:`HEAD_CONFIDENCE` sure
-    (``confidences`` (17,)). A palm on the cheek, a hand on the chin, at the ear or on top of the head."""
-    ears = _sure_ears(confidences)
-    if confidences[0] < HEAD_CONFIDENCE or not ears:
-        return []
-    centre = np.asarray(world, np.float64)[[0] + ears, :2].mean(axis=0)
-    return [w for w in WRISTS if confidences[w] >= HEAD_CONFIDENCE
-            and np.linalg.norm(np.asarray(world[w][:2], np.float64) - centre) <= HEAD_TOUCH]
-
-
-def onto_the_head(world: np.ndarray, confidences: np.ndarray) -> np.ndarray:
-    """The detector's 3D landmarks ``world`` (17, 3, camera axes) with each wrist on the head
-    (:func:`hands_on_head`) moved along the view to the head's middle depth (halfway between the nose
-    and the ears); nothing else moves.
-
-    A forearm raised to the head is foreshortened in the photo, and which way it points in depth is
-    the one thing the photo does not tell: MediaPipe often takes the wrong way, putting a palm that
-    rests on the cheek 20-25 cm before the nose (synthetic hand-to-face renders), and the fitted hand
-    then stands before the face; hands resting on the crown it puts level with the face. A hand the
-    photo shows on the head is taken as touching it: at the jaw, an ear or the crown the wrist lies
-    about the head's middle."""
-    out = np.asarray(world, np.float64).copy()
-    on_head = hands_on_head(out, confidences)
-    if on_head:
-        out[on_head, 2] = 0.5 * (out[0, 2] + out[_sure_ears(confidences), 2].mean())
-    return out.astype(np.float32)
-
-
-def standing_still(keypoints: np.ndarray, confidences: np.ndarray, world: np.ndarray | None,
-                   mask: np.ndarray) -> bool:
-    """Whether a photo shows a person standing still on both legs: 2D ``keypoints`` (17, 2 pixels) and
-    ``confidences``, the detector's 3D landmarks ``world`` (17, 3, or None: no 3D check) and the person's
-    ``mask``, with the thresholds of :data:`STANCE_CONFIDENCE` .. :data:`STANCE_BEND_DEG`. A stride
-    (ankles at different rows), a seated or crouching person (short or bent thighs), hidden legs (a
-    gown) or a leg raised sideways are not."""
-    legs = [j for leg in LEGS for j in leg]
-    if min(confidences[legs]) < STANCE_CONFIDENCE:
-        return False
-    torso = _torso_length(keypoints)
-    for hip, knee, ankle in LEGS:
-        thigh, shin = keypoints[knee] - keypoints[hip], keypoints[ankle] - keypoints[knee]
-        if (_angle_deg(thigh, IMAGE_DOWN) > STANCE_THIGH_DEG or _angle_deg(shin, IMAGE_DOWN) > STANCE_SHIN_DEG
-                or np.linalg.norm(thigh) < STANCE_THIGH_LENGTH * torso):
-            return False
-        if world is not None and _angle_deg(world[knee] - world[hip], world[ankle] - world[knee]) > STANCE_BEND_DEG:
-            return False
-    rows = np.flatnonzero((mask > 0.5).any(axis=1))
-    height = float(rows[-1] - rows[0] + 1) if len(rows) else 0.0
-    return abs(float(keypoints[15, 1] - keypoints[16, 1])) <= STANCE_ROWS * height
 
 
 def _swap_pairs(groups: Sequence[bool], *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -833,8 +604,8 @@ def _initial_params(problem: _Problem, key: int) -> BodyParams:
     depth = float(w2c[2, 3])  # camera z of the world origin (the orbit centre)
     if conf[list(TORSO)].min() > 0:
         centre_px = kp[list(TORSO)].mean(0)
-        torso_px = _torso_length(kp)
-        model_torso = _torso_length(coco)
+        torso_px = torso_length(kp)
+        model_torso = torso_length(coco)
         scale = torso_px * depth / float(K[1, 1]) / max(model_torso, 1e-6)
         scale = float(np.clip(scale, 0.2, 5.0))
     else:  # silhouette only: the mask's bounding box centre and height
