@@ -51,8 +51,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    of a round cross-section through the pixel (:func:`run_halfdepth`: across its row and down its
    column of the mask, the smaller; a run ends where the body part changes, a pixel outside the body
    taking the part of the nearest body pixel in its row (:func:`row_nearest`), so a sleeve touching
-   the torso is as thick as the sleeve and a skirt below hanging hands keeps its whole width), in
-   world units at the local depth; :data:`INFLATION` makes it
+   the torso is as thick as the sleeve and a skirt below hanging hands keeps its whole width; beside
+   and above the head, the row's alone: a hat, big hair or a bun is round about the vertical, so a
+   brim, thin in its column, is as deep as it is wide), in world units at the local depth;
+   :data:`INFLATION` makes it
    a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
    neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
    left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
@@ -231,14 +233,17 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
 # ----------------------------------------------------------------------------- thickness
 
-def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
+def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None,
+                  round_about_vertical: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``domain``, in pixels: the round cross-section's half-depth ``sqrt(a^2 - (x - c)^2)`` of
     the horizontal run of domain pixels it lies on (centre ``c``, half-length ``a``), and the same along
     its column; the smaller of the two. A skirt's rows are short and its columns long (round from the
     side, not rounded at its hem); an outstretched arm's columns are the short ones. With ``labels``
     (H, W int, e.g. the body part beside each pixel) a row's run also ends where the label changes, so a
     sleeve that touches the torso is as thick as the sleeve, not as the row through both (columns stay
-    whole: a skirt's column runs through the hands' rows)."""
+    whole: a skirt's column runs through the hands' rows). Where ``round_about_vertical`` (H, W bool) is
+    set the row's value holds alone: what lies there is round about the vertical (a hat's brim, thin in
+    its column, is as deep as it is wide)."""
 
     def along_rows(d: np.ndarray) -> np.ndarray:
         h, w = d.shape
@@ -260,7 +265,8 @@ def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None) -> np.nd
         for value in np.unique(labels[d]):
             region = d & (labels == value)
             rows[region] = along_rows(region)[region]
-    return np.minimum(rows, along_rows(d.T).T)
+    both = np.minimum(rows, along_rows(d.T).T)
+    return both if round_about_vertical is None else np.where(round_about_vertical, rows, both)
 
 
 def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: np.ndarray,
@@ -518,7 +524,10 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # thick as the sleeve, not as the row through both (wings from the side); the part of a loose pixel is
     # that of the nearest body pixel in its own row, so a skirt below hanging hands keeps its whole width
     beside = row_nearest(maps["front_part"], body)
-    t_round = run_halfdepth(domain, beside) * mid / fx * INFLATION
+    # what the mask holds beside and above the head (a hat, big hair, a bun) is round about the vertical:
+    # a brim, thin in its column, is as deep as the row through it is wide
+    headwear = domain & ~body & (beside == PARTS.index("head"))
+    t_round = run_halfdepth(domain, beside, headwear) * mid / fx * INFLATION
     # inflate where the mask reaches beyond the body (loose clothing, hair, objects), not where it hugs it
     window = max(3, int(LOOSE_WINDOW * g) | 1)
     area = cv2.boxFilter(domain.astype(np.float32), -1, (window, window), normalize=False)

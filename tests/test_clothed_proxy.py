@@ -895,6 +895,44 @@ def test_a_garment_standing_out_at_both_sides_stands_as_far_out_in_front_and_beh
     assert abs(thickness(0.75) - 0.3) < 0.012, thickness(0.75)  # the head
 
 
+def test_a_hat_brim_is_as_deep_as_it_is_wide_and_a_sleeve_is_not():
+    """A 3 cm brim reaching 0.15 m beyond the cylinder "body"'s 0.3-wide head at both sides (a hat): round
+    about the vertical, it stands before and behind the head about as far as beside it (before: as deep
+    as the brim is thin, a blade from the side). The same band over the torso's rows (arms held out
+    sideways, the body's own cross-section elsewhere) stays as thin as it is tall."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import INFLATION, build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    v, f, w, names = _cylinder_body(max_edge=0.04)
+    size, distance = 192, 3.2
+    cam = orbit_cameras(1, size, 33.8, 0.0, distance, azimuths_deg=np.array([0.0]))
+    body_mask = render_views(TexturedMesh(v, f), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    focal = float(cam.K[0, 0, 0])
+    cx, cy = float(cam.K[0, 0, 2]), float(cam.K[0, 1, 2])
+
+    def band(y: float) -> np.ndarray:
+        """A 3 cm band 0.6 m wide centred at height ``y`` (the front of the body at the camera's distance)."""
+        yy, xx = np.mgrid[:size, :size] + 0.5
+        wx, wy = (xx - cx) * (distance - 0.15) / focal, -(yy - cy) * (distance - 0.15) / focal
+        return (np.abs(wx) <= 0.3) & (np.abs(wy - y) <= 0.015)
+
+    def depth_beside(mask: np.ndarray, y: float) -> float:
+        proxy = build_clothed_proxy(v, f, w, names, cam, np.full((size, size, 3), 0.5, np.float32),
+                                    mask.astype(np.float32), grid=size)
+        p = proxy.mesh.vertices
+        out = (np.abs(np.abs(p[:, 0]) - 0.22) < 0.03) & (np.abs(p[:, 1] - y) < 0.1)  # the rays fan out: back sheet higher
+        return float(p[out, 2].max() - p[out, 2].min())
+
+    brim = depth_beside(body_mask | band(0.66), 0.66)
+    round_depth = 2 * np.sqrt(0.3 ** 2 - 0.22 ** 2) * INFLATION  # 0.33 m: the round brim's depth there
+    assert brim > 0.6 * round_depth, (brim, round_depth)
+    sleeve = depth_beside(body_mask | band(0.2), 0.2)
+    assert sleeve < 0.06, sleeve
+
+
 def test_the_hair_colour_leaves_out_a_forehead_showing_at_the_top_of_the_head():
     """Hair drawn back (or a high hairline) shows the forehead in the top band of the head: the back of the
     head takes the hair's colour, not a mix of hair and skin (before: the per-channel median of the band)."""
