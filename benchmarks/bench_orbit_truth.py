@@ -4,7 +4,9 @@ Subjects: ``bench_pipeline``'s three (``results/pipeline.json``: subject0 seated
 subject2 standing), ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_hair``, ``walking_skirt``, ``long_coat``),
 ``a_pose`` (arms held out 45 deg to the side), ``hand_to_face`` (the right palm on the cheek), ``hands_on_head``
 (both hands on the crown, elbows out) and ``hands_clasped`` (the hands together before the belly), each built with
-``make_subject`` (512² texture) and normalised like a scan. The photo is the subject rendered at
+``make_subject`` (512² texture) and normalised like a scan; and headwear (:data:`HEADWEAR`: ``hat`` a wide
+brim and a crown, ``afro``, ``top_bun``, ``helmet`` open at the face), closed shapes in one colour added
+around the subject's head before normalising (:func:`with_headwear`). The photo is the subject rendered at
 azimuth 0, elevation 10°, 576² over white; ``body_prior.build_body_proxy`` (what ``diffuse``'s
 body-prior backend renders its orbit from) is rendered at azimuth 0 / 90 / 180 / 270 and scored against
 the subject rendered there: PSNR and silhouette IoU after re-framing (``bench_pipeline.reframe``; with
@@ -38,6 +40,50 @@ from benchmarks.common import RESULTS, save_result  # noqa: E402
 AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
 
 
+# headwear: subject, colour, shapes around the head, each (kind, centre offset from the ears' midpoint in
+# metres (x, y, z; +z the face's side), radii (x, y, z)): an ellipsoid, or a cylinder about the vertical
+# (radii x / z, half-height y); "open ellipsoid" keeps the part behind a plane 0.45 of its radius before
+# its centre (the face stays in view)
+HEADWEAR = {
+    "hat": (dict(seed=24, gender=0.4), (55, 35, 25), [("cylinder", (0.0, 0.085, 0.0), (0.2, 0.008, 0.2)),
+                                                      ("cylinder", (0.0, 0.135, -0.005), (0.105, 0.05, 0.115))]),
+    "afro": (dict(seed=21, gender=0.8, hair_color=(40, 28, 20)), (40, 28, 20),
+             [("ellipsoid", (0.0, 0.06, -0.02), (0.16, 0.15, 0.15))]),
+    "top_bun": (dict(seed=22, gender=0.9), None, [("ellipsoid", (0.0, 0.16, -0.03), (0.06, 0.05, 0.06))]),
+    "helmet": (dict(seed=23, gender=0.2), (200, 200, 205),
+               [("open ellipsoid", (0.0, 0.045, -0.01), (0.13, 0.14, 0.145))]),
+}
+
+
+def with_headwear(mesh, ears, colour, shapes):
+    """``mesh`` (a TexturedMesh with a texture) with ``shapes`` (see :data:`HEADWEAR`) placed about
+    ``ears`` (3,), in one ``colour`` (RGB 0-255): a strip of that colour is added to the texture's right."""
+    import trimesh
+
+    from humanvdm_core.scans import TexturedMesh
+
+    h, w = mesh.texture.shape[:2]
+    strip = max(w // 16, 4)
+    texture = np.concatenate([mesh.texture, np.broadcast_to(np.asarray(colour, np.uint8), (h, strip, 3))], 1)
+    uvs = mesh.uvs * np.array([w / (w + strip), 1.0], np.float32)
+    vertices, faces, all_uvs = [mesh.vertices], [mesh.faces], [uvs]
+    count = len(mesh.vertices)
+    for kind, offset, radii in shapes:
+        if kind == "cylinder":
+            shape = trimesh.creation.cylinder(radius=1.0, height=2.0, sections=48)
+            v, f = np.asarray(shape.vertices)[:, [0, 2, 1]], np.asarray(shape.faces)  # its axis along y
+        else:
+            shape = trimesh.creation.icosphere(subdivisions=4)
+            v, f = np.asarray(shape.vertices), np.asarray(shape.faces)
+            if kind == "open ellipsoid":
+                f = f[v[f][:, :, 2].max(axis=1) < 0.45]
+        vertices.append(v * np.asarray(radii) + np.asarray(ears) + np.asarray(offset))
+        faces.append(f + count)
+        all_uvs.append(np.tile([(w + strip / 2) / (w + strip), 0.5], (len(v), 1)))
+        count += len(v)
+    return TexturedMesh(np.concatenate(vertices), np.concatenate(faces), uvs=np.concatenate(all_uvs), texture=texture)
+
+
 def specs() -> dict:
     from testdata.synthetic import GARMENT_EXAMPLES, SubjectSpec
 
@@ -51,6 +97,7 @@ def specs() -> dict:
     out["hand_to_face"] = SubjectSpec(pose="hand-to-face", seed=7)  # the right palm on the cheek
     out["hands_on_head"] = SubjectSpec(pose="hands-on-head", seed=11)  # both hands on the crown, elbows out
     out["hands_clasped"] = SubjectSpec(pose="hands-clasped", seed=5)  # the hands together before the belly
+    out.update({name: SubjectSpec(**kw) for name, (kw, _, _) in HEADWEAR.items()})
     return out
 
 
@@ -80,7 +127,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="orbit_truth_") as tmp:
         for name in names:
             spec = table[name]
-            mesh = normalize_scan(load_scan(make_subject(spec, Path(tmp) / name, texture_size=512)))
+            obj = make_subject(spec, Path(tmp) / name, texture_size=512)
+            mesh = load_scan(obj)
+            if name in HEADWEAR:
+                _, colour, shapes = HEADWEAR[name]
+                ears = np.load(obj.parent / "truth.npz")["coco17"][[3, 4]].mean(axis=0)
+                mesh = with_headwear(mesh, ears, spec.hair_color if colour is None else colour, shapes)
+            mesh = normalize_scan(mesh)
             truth = render_views(mesh, cams, (1.0, 1.0, 1.0)).rgba
             photo = Path(tmp) / f"{name}.png"
             write_png(photo, truth[0])
