@@ -240,7 +240,7 @@ def protocol_run(ctx: Context, folder: Path, extra_sets: list[str], strip_name: 
     (ctx.work / f"{name}.run.json").write_text(json.dumps(run.record(), indent=1) + "\n")
     args = argparse.Namespace(skip_pipeline=True, photo_size=ctx.mode.photo_size, opaque=False, jobs=ctx.jobs,
                               orbit_only=False, set=sets, eval_size=ctx.mode.eval_size, no_reframe=False,
-                              label="experiments", turn=0.0)
+                              label="experiments", turn=0.0, gaussians=None)
     try:
         result = run_scan(folder, ctx.work, args)
     except Exception:  # scoring broke (a bug here or in the code it calls): a row saying so; the parts go on
