@@ -5,8 +5,8 @@ subject2 standing), ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_hair`
 ``a_pose`` (arms held out 45 deg to the side), ``hand_to_face`` (the right palm on the cheek), ``hands_on_head``
 (both hands on the crown, elbows out) and ``hands_clasped`` (the hands together before the belly), each built with
 ``make_subject`` (512² texture) and normalised like a scan; and headwear (:data:`HEADWEAR`: ``hat`` a wide
-brim and a crown, ``afro``, ``top_bun``, ``helmet`` open at the face), closed shapes in one colour added
-around the subject's head before normalising (:func:`with_headwear`). The photo is the subject rendered at
+brim and a crown, ``afro``, ``top_bun``, ``helmet`` open at the face), shapes in one colour added around
+the subject's head before normalising (:func:`with_headwear`; all closed but the helmet's open shell). The photo is the subject rendered at
 azimuth 0, elevation 10°, 576² over white; ``body_prior.build_body_proxy`` (what ``diffuse``'s
 body-prior backend renders its orbit from) is rendered at azimuth 0 / 90 / 180 / 270 and scored against
 the subject rendered there: PSNR and silhouette IoU after re-framing (``bench_pipeline.reframe``; with

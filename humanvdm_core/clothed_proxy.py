@@ -54,9 +54,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    the torso is as thick as the sleeve and a skirt below hanging hands keeps its whole width; beside
    and above the head, the row's alone: a hat, big hair or a bun is round about the vertical, so a
    brim, thin in its column, is as deep as it is wide), in world units at the local depth;
-   :data:`INFLATION` makes it
-   a little flatter front to back than wide; ``looseness`` in [0, 1] grows with the share of the
-   neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
+   :data:`INFLATION` makes it a little flatter front to back than wide; ``looseness`` in [0, 1] grows
+   with the share of the neighbourhood (:data:`LOOSE_WINDOW`) that the mask covers and the body's trunk (arms and hands
    left out: hands hanging beside a skirt do not make it tight) does not (:data:`LOOSE_RANGE`), so a
    skirt, a gown, a coat or hair gets volume while a torso keeps the body's own thickness; in a
    skirt's rows (step 5) the whole run of the mask is inflated as loose (``r`` from the run without
