@@ -56,18 +56,13 @@ HEADWEAR = {
 
 
 def with_headwear(mesh, ears, colour, shapes):
-    """``mesh`` (a TexturedMesh with a texture) with ``shapes`` (see :data:`HEADWEAR`) placed about
-    ``ears`` (3,), in one ``colour`` (RGB 0-255): a strip of that colour is added to the texture's right."""
+    """``mesh`` with ``shapes`` (see :data:`HEADWEAR`) placed about ``ears`` (3,), each in one ``colour``
+    (RGB 0-255), merged with :func:`humanvdm_core.scans.merge_meshes`."""
     import trimesh
 
-    from humanvdm_core.scans import TexturedMesh
+    from humanvdm_core.scans import TexturedMesh, merge_meshes
 
-    h, w = mesh.texture.shape[:2]
-    strip = max(w // 16, 4)
-    texture = np.concatenate([mesh.texture, np.broadcast_to(np.asarray(colour, np.uint8), (h, strip, 3))], 1)
-    uvs = mesh.uvs * np.array([w / (w + strip), 1.0], np.float32)
-    vertices, faces, all_uvs = [mesh.vertices], [mesh.faces], [uvs]
-    count = len(mesh.vertices)
+    parts = [mesh]
     for kind, offset, radii in shapes:
         if kind == "cylinder":
             shape = trimesh.creation.cylinder(radius=1.0, height=2.0, sections=48)
@@ -77,11 +72,9 @@ def with_headwear(mesh, ears, colour, shapes):
             v, f = np.asarray(shape.vertices), np.asarray(shape.faces)
             if kind == "open ellipsoid":
                 f = f[v[f][:, :, 2].max(axis=1) < 0.45]
-        vertices.append(v * np.asarray(radii) + np.asarray(ears) + np.asarray(offset))
-        faces.append(f + count)
-        all_uvs.append(np.tile([(w + strip / 2) / (w + strip), 0.5], (len(v), 1)))
-        count += len(v)
-    return TexturedMesh(np.concatenate(vertices), np.concatenate(faces), uvs=np.concatenate(all_uvs), texture=texture)
+        v = v * np.asarray(radii) + np.asarray(ears) + np.asarray(offset)
+        parts.append(TexturedMesh(v, f, vertex_colors=np.tile(np.asarray(colour, np.float32) / 255.0, (len(v), 1))))
+    return merge_meshes(parts)
 
 
 def specs() -> dict:
