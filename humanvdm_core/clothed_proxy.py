@@ -232,6 +232,18 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
 # ----------------------------------------------------------------------------- thickness
 
+def row_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The horizontal runs of ``mask`` (H, W bool): each run's row, first column and end column
+    (exclusive), row by row and left to right."""
+    h, w = mask.shape
+    padded = np.zeros((h, w + 2), np.int8)
+    padded[:, 1:-1] = mask
+    diff = np.diff(padded, axis=1)
+    rows, starts = np.nonzero(diff == 1)
+    _, ends = np.nonzero(diff == -1)  # the same row order as the starts
+    return rows, starts, ends
+
+
 def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None,
                   round_about_vertical: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``domain``, in pixels: the round cross-section's half-depth ``sqrt(a^2 - (x - c)^2)`` of
@@ -245,14 +257,8 @@ def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None,
     its column, is as deep as it is wide)."""
 
     def along_rows(d: np.ndarray) -> np.ndarray:
-        h, w = d.shape
-        padded = np.zeros((h, w + 2), bool)
-        padded[:, 1:-1] = d
-        diff = np.diff(padded.astype(np.int8), axis=1)
-        out = np.zeros((h, w), np.float32)
-        rows_s, starts = np.nonzero(diff == 1)
-        _, ends = np.nonzero(diff == -1)  # same row order as the starts
-        for r, x0, x1 in zip(rows_s, starts, ends, strict=True):
+        out = np.zeros(d.shape, np.float32)
+        for r, x0, x1 in zip(*row_runs(d), strict=True):
             a = 0.5 * (x1 - x0)
             x = np.arange(x0, x1) + 0.5 - 0.5 * (x0 + x1)
             out[r, x0:x1] = np.sqrt(np.maximum(a * a - x * x, 0.0))
@@ -333,21 +339,20 @@ def garment_margins(maps: dict, body: np.ndarray, person: np.ndarray, metres_per
     bag or a binder held beside one side does not count; a coat, a puffy jacket, armour or wide trousers
     stand out on both."""
     out = {}
+    runs = row_runs(person.astype(bool))
     for part in ("torso", "legs"):
         gaps = []
         shown = body & (maps["front_part"] == PARTS.index(part))
-        for y in np.nonzero(shown.any(axis=1))[0]:
-            edges = np.diff(np.concatenate([[0], person[y].astype(np.int8), [0]]))
-            for a, b in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0], strict=True):
-                cols = np.nonzero(shown[y, a:b])[0]
-                if len(cols) == 0:
-                    continue
-                left, right = cols.min(), cols.max()
-                while left > 0 and body[y, a + left - 1]:
-                    left -= 1
-                while a + right + 1 < b and body[y, a + right + 1]:
-                    right += 1
-                gaps.append(min(left, b - a - 1 - right))
+        for y, a, b in zip(*runs, strict=True):
+            cols = np.nonzero(shown[y, a:b])[0]
+            if len(cols) == 0:
+                continue
+            left, right = cols.min(), cols.max()
+            while left > 0 and body[y, a + left - 1]:
+                left -= 1
+            while a + right + 1 < b and body[y, a + right + 1]:
+                right += 1
+            gaps.append(min(left, b - a - 1 - right))
         out[part] = float(np.median(gaps)) * metres_per_px if gaps else 0.0
     return out
 
