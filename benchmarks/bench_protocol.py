@@ -36,7 +36,9 @@ Outputs (``benchmarks/results/``):
   frames, means, per-stage timings, the pipeline command, the machine; with label ``after`` and a
   ``protocol_before.json`` present (``--before``), also before -> after per scan;
 - ``protocol_<scan>.png`` (``protocol_<scan>_<label>.png`` for other labels): rows = the four views,
-  columns = truth | orbit (nearest frame) | Gaussians.
+  columns = truth | orbit (nearest frame) | Gaussians | where the orbit's silhouette misses (both grey,
+  the truth's alone red, the orbit's alone blue; per view in the JSON too, ``misses``: the pixels
+  each has alone per height band of the two silhouettes' union, :data:`BANDS`).
 
 The "before" numbers come from the old code in a git worktree of HEAD, e.g.::
 
@@ -81,6 +83,8 @@ METRICS = ("psnr", "ssim", "iou", "masked_psnr")
 MEANS = (*METRICS, "unseen_mean", "side_iou")
 STRIP_MAX_BYTES = 1_500_000
 DEFAULT_WORK = Path("/tmp/humanvdm_bench_protocol")
+# height bands of a silhouette overlay, as fractions of the union's height from its top (a standing adult)
+BANDS = {"head": (0.0, 0.16), "torso": (0.16, 0.52), "legs": (0.52, 1.0)}
 LEFT_IS = "azimuth 90 deg: the camera on +X, seeing the subject's left side (subject faces +Z, azimuth 0 = front)"
 
 
@@ -122,6 +126,26 @@ def label_cell(img: np.ndarray, text: str) -> np.ndarray:
     cv2.putText(img, text, (int(8 * scale), int(28 * scale)), cv2.FONT_HERSHEY_SIMPLEX, 0.8 * scale, (0, 0, 0),
                 max(1, int(round(2 * scale))), cv2.LINE_AA)
     return img
+
+
+def silhouette_misses(alpha: np.ndarray, truth_alpha: np.ndarray) -> tuple[np.ndarray, dict[str, list[int]]]:
+    """Two re-framed silhouettes compared: an RGB uint8 overlay (both grey, ``truth_alpha``'s alone red,
+    ``alpha``'s alone blue) and, per height band of their union (:data:`BANDS`), the pixels
+    ``[truth alone, alpha alone]``."""
+    a, t = alpha > 0.5, truth_alpha > 0.5
+    img = np.full(a.shape + (3,), 255, np.uint8)
+    img[a & t] = 150
+    img[t & ~a] = (235, 60, 60)
+    img[a & ~t] = (60, 80, 235)
+    rows = np.nonzero((a | t).any(axis=1))[0]
+    if not len(rows):
+        return img, {band: [0, 0] for band in BANDS}
+    top, height = rows.min(), rows.max() + 1 - rows.min()
+    misses = {}
+    for band, (lo, hi) in BANDS.items():
+        sl = slice(top + int(round(lo * height)), top + int(round(hi * height)))
+        misses[band] = [int((t & ~a)[sl].sum()), int((a & ~t)[sl].sum())]
+    return img, misses
 
 
 def write_strip(path: Path, rows: list[np.ndarray]) -> None:
@@ -219,12 +243,16 @@ def run_scan(folder: Path, work: Path, args) -> dict:
         t = prep(truth[i, ..., :3], truth[i, ..., 3])
         g = (g_rgb[i], None) if g_a is None else prep(g_rgb[i], g_a[i])
         frame_az = float(orbit_cams.azimuth_deg[idx[i]])
-        orbit_views[view] = {**scores(o, ot), "frame": idx[i], "frame_azimuth_deg": round(frame_az, 3)}
+        overlay, misses = silhouette_misses(o[1], ot[1])
+        orbit_views[view] = {**scores(o, ot), "frame": idx[i], "frame_azimuth_deg": round(frame_az, 3),
+                             "misses": misses}
         if g_a is not None:
             gauss_views[view] = {**scores(g, t), "azimuth_deg": az}
         rows.append(np.concatenate([label_cell(t[0], f"{view}: truth az {az:.0f}"),
                                     label_cell(o[0], f"orbit frame {idx[i]} az {frame_az:.1f}"),
-                                    label_cell(g[0], "Gaussians" if g_a is not None else "Gaussians: not run")], axis=1))
+                                    label_cell(g[0], "Gaussians" if g_a is not None else "Gaussians: not run"),
+                                    label_cell(overlay.astype(np.float32) / 255.0,
+                                               f"IoU {orbit_views[view]['iou']:.3f}: truth red, orbit blue")], axis=1))
     suffix = "" if args.label == "after" else f"_{args.label}"
     strip = RESULTS / f"protocol_{name}{suffix}.png"
     write_strip(strip, rows)
