@@ -126,9 +126,12 @@ WORLD_CONVENTION = ("metres; Y up; facing +Z; person's left at +X; lowest vertex
 # - hands-on-head: two-bone IK puts each wrist beside the top of the head (8 cm out from the eyes'
 #   middle, 9 cm above and 7 cm behind it), the hands over the crown, the elbows out to the sides;
 # - hands-clasped: two-bone IK puts both wrists 2 cm either side of the midline, 5 cm above the
-#   pelvis joint and just before the lower belly: the hands cross there, one over the other.
+#   pelvis joint and just before the lower belly: the hands cross there, one over the other;
+# - arms-crossed: two-bone IK puts each wrist across the midline before the lower chest, 30 cm above the
+#   pelvis joint, so the hand reaches the other arm's elbow (the right forearm over the left, 3 cm
+#   nearer the camera and 3 cm higher), the elbows down beside the ribs.
 POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated", "hand-to-face",
-                          "hands-on-head", "hands-clasped")
+                          "hands-on-head", "hands-clasped", "arms-crossed")
 # the poses random_specs cycles through (fixed, so its subjects stay those of the recorded benchmarks)
 RANDOM_POSES: tuple[str, ...] = POSES[:6]
 
@@ -157,7 +160,7 @@ HAIR_STYLES = ("short", "long")
 DRESSES = ("none", "skirt", "long", "coat")
 DRESS_PATTERNS = ("solid", "stripes", "checks", "dots")
 GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised",  # dress poses
-                                  "hand-to-face", "hands-on-head", "hands-clasped")
+                                  "hand-to-face", "hands-on-head", "hands-clasped", "arms-crossed")
 GARMENT_TEXTURE = "garments.png"
 _PALETTE: tuple[RGB, ...] = (
     (200, 30, 40), (30, 80, 180), (240, 200, 40), (30, 140, 70), (240, 240, 235), (25, 25, 30),
@@ -466,6 +469,14 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
         for s, side in sides:
             target = np.array([s * 0.02, joint["root"][1] + 0.05, joint["root"][2] + body_half_width * 0.9 + 0.04])
             reach(side, target, np.array([s * 1.0, -0.5, -0.3]))
+            leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
+    elif name == "arms-crossed":
+        # the forearms folded across the lower chest, each hand reaching the other arm's elbow
+        for s, side in sides:
+            over = 1.0 if side == "R" else 0.0  # the right forearm lies over the left
+            target = np.array([-s * (body_half_width * 0.4), joint["root"][1] + 0.30 + 0.03 * over,
+                               joint["root"][2] + body_half_width * 0.9 + 0.05 + 0.03 * over])
+            reach(side, target, np.array([s * 0.6, -1.0, 0.2]))
             leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
     elif name == "seated":
         for s, side in sides:

@@ -805,6 +805,60 @@ def test_an_arm_whose_hand_a_contact_places_keeps_its_fitted_depth():
             assert float(np.abs(z).max()) <= 0.15 + ARM_REACH + 0.02, (neck, z.min(), z.max())
 
 
+def _proxy_of_folded_arm():
+    """The clothed proxy of a cylinder "torso" (radius 0.15 m, the camera on +z) with its right "upper arm"
+    hanging beside it (a 0.08 m box along y at x = -0.22, z = 0) and the left "forearm" folded across it
+    far in front (a 0.08 m box along x from x = 0.1 to -0.3 at y = 0, z = 0.4, over the upper arm)."""
+    import trimesh
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import build_clothed_proxy
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    torch.set_num_threads(1)
+    v, f, w, _ = _cylinder_body(max_edge=0.05)
+    upper = trimesh.creation.box(extents=(0.08, 0.6, 0.08))
+    upper.apply_translation((-0.22, 0.0, 0.0))
+    fore = trimesh.creation.box(extents=(0.4, 0.08, 0.08))
+    fore.apply_translation((-0.1, 0.0, 0.4))
+    parts = [(v, f), (np.asarray(upper.vertices), np.asarray(upper.faces)), (np.asarray(fore.vertices), np.asarray(fore.faces))]
+    starts = np.cumsum([0] + [len(p[0]) for p in parts])
+    verts = np.concatenate([p[0] for p in parts])
+    faces = np.concatenate([p[1] + s for p, s in zip(parts, starts, strict=False)])
+    weights = np.zeros((len(verts), 4))
+    weights[: len(v), :2] = w
+    weights[starts[1]:starts[2], 2] = 1.0
+    weights[starts[2]:, 3] = 1.0
+    names = ["spine01", "head", "upperarm01.R", "lowerarm01.L"]
+    size = 128
+    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
+    return build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
+                               grid=size)
+
+
+def test_a_forearm_folded_across_the_other_arm_does_not_push_that_arm_behind_the_back(monkeypatch):
+    """Where a forearm lies far in front of the other arm (arms folded across the chest), the pull that
+    brings the forearm within ARM_REACH of the body moved the pixel's far surface -- the other arm's
+    back -- by as much, out behind the torso's back (a wing from the side). The far surface now moves
+    only where the pixel is one limb deep (LIMB_DEPTH); the forearm is still pulled back."""
+    from humanvdm_core import clothed_proxy
+
+    def beside_the_torso(proxy):
+        x, y, z = proxy.mesh.vertices.T
+        near = (np.abs(x + 0.22) < 0.01) & (np.abs(y) < 0.03)  # over the upper arm, under the forearm
+        return z[near & ~proxy.front].min(), z[near & proxy.front].max()
+
+    back, front = beside_the_torso(_proxy_of_folded_arm())
+    assert back >= -0.04 - 0.025, back  # the upper arm's own back
+    assert front < 0.44 - 0.05, front  # the forearm (0.44 m out) pulled back, as far as the fade there allows
+    monkeypatch.setattr(clothed_proxy, "LIMB_DEPTH", np.inf)  # the far surface moved with the pull, as before
+    old_back, old_front = beside_the_torso(_proxy_of_folded_arm())
+    assert old_back < back - 0.08, (old_back, back)  # was -0.16: 0.12 m behind the upper arm's back
+    assert abs(old_front - front) < 0.01
+
+
 def test_an_arm_behind_the_body_stands_at_most_arm_reach_behind_it():
     """A 0.6 m "arm" (0.16 m thick) pointing away from the camera from the back of a cylinder "torso"
     (hidden by it in the photo, as the far arm of a person seen in profile): the proxy's back stands at

@@ -179,6 +179,18 @@ def test_hands_clasped_meet_before_the_lower_belly(subjects):
     assert min(left[2], right[2]) > hips[2] + 0.08  # before the body
 
 
+def test_arms_crossed_fold_across_the_chest(subjects):
+    _, truth = subjects["arms-crossed"]
+    shoulders = 0.5 * (kp(truth, "left_shoulder") + kp(truth, "right_shoulder"))
+    hips = 0.5 * (kp(truth, "left_hip") + kp(truth, "right_hip"))
+    for side, s in (("left", 1.0), ("right", -1.0)):
+        wrist, elbow = kp(truth, f"{side}_wrist"), kp(truth, f"{side}_elbow")
+        assert s * wrist[0] < -0.03  # across the midline
+        assert hips[1] + 0.2 < wrist[1] < shoulders[1] and wrist[2] > shoulders[2] + 0.12  # before the chest
+        assert elbow[1] < wrist[1] and s * elbow[0] > 0.1  # the elbow down, beside the body
+    assert kp(truth, "right_wrist")[2] > kp(truth, "left_wrist")[2]  # the right forearm over the left
+
+
 def test_standing_and_a_pose_arms(subjects):
     _, stand = subjects["standing"]
     _, apose = subjects["a-pose"]
