@@ -17,9 +17,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`ARM_REACH` in front of the nearest surface of the body without its arms (fading out over
    :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
    single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
-   and the body behind it. The arm's far surface moves with it only where the pixel is one limb deep
-   (:data:`LIMB_DEPTH`): behind a forearm folded across the other arm lies that arm, which stays where
-   it is rather than being pushed out behind the back. Likewise where an arm or a hand is the body's
+   and the body behind it. The arm's far surface moves with it, unless it is the other arm's: behind a
+   forearm folded across the other arm lies that arm, which stays where it is rather than being pushed
+   out behind the back. Likewise where an arm or a hand is the body's
    farthest surface (behind the body, hidden by it: the far arm of a person seen in profile), it stands
    at most :data:`ARM_REACH` behind the farthest surface of the body without its arms
    (:func:`arm_reach_limit`), not a fin the arm's length deep. An arm whose hand rests on the head
@@ -112,7 +112,6 @@ HAIR_FADE = 0.1  # ... fading out over this fraction of the grid below the curta
 SKIN_INFLUENCES = 4
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
-LIMB_DEPTH = 0.15  # metres: an arm's pixel whose nearest and farthest surfaces lie further apart holds two limbs
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
 CLOTHING = {"torso": 0.02, "feet": 0.025}
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
@@ -509,11 +508,11 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     if (maps["trunk_front"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_front"], fx)
         shift = np.where(limb_front, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
-        # the arm's far side moves with it where the pixel is one limb deep; where it is more (a forearm
-        # folded across the other arm) the far surface is the other limb's, and it stays
-        one_limb = np.isin(maps["back_part"], limbs) & (maps["back"] - maps["front"] < LIMB_DEPTH)
+        # the arm's far side moves with it, unless the far surface is the other arm's (a forearm folded
+        # across it): that arm stays where it is
+        same_arm = np.isin(maps["back_part"], limbs) & (maps["back_side"] == maps["front_side"])
         maps["front"] = maps["front"] + shift
-        maps["back"] = np.maximum(maps["back"] + np.where(one_limb, shift, 0.0), maps["front"])
+        maps["back"] = np.maximum(maps["back"] + np.where(same_arm, shift, 0.0), maps["front"])
     if (maps["trunk_back"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_back"], fx)
         arm = body & np.isin(maps["back_part"], limbs) & ~placed("back")

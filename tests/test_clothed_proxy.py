@@ -842,7 +842,7 @@ def test_a_forearm_folded_across_the_other_arm_does_not_push_that_arm_behind_the
     """Where a forearm lies far in front of the other arm (arms folded across the chest), the pull that
     brings the forearm within ARM_REACH of the body moved the pixel's far surface -- the other arm's
     back -- by as much, out behind the torso's back (a wing from the side). The far surface now moves
-    only where the pixel is one limb deep (LIMB_DEPTH); the forearm is still pulled back."""
+    only when it is the same arm's; the forearm is still pulled back."""
     from humanvdm_core import clothed_proxy
 
     def beside_the_torso(proxy):
@@ -853,9 +853,17 @@ def test_a_forearm_folded_across_the_other_arm_does_not_push_that_arm_behind_the
     back, front = beside_the_torso(_proxy_of_folded_arm())
     assert back >= -0.04 - 0.025, back  # the upper arm's own back
     assert front < 0.44 - 0.05, front  # the forearm (0.44 m out) pulled back, as far as the fade there allows
-    monkeypatch.setattr(clothed_proxy, "LIMB_DEPTH", np.inf)  # the far surface moved with the pull, as before
+
+    real_maps = clothed_proxy.body_maps
+
+    def one_arm(*args, **kwargs):  # both arms on one side: the far surface moves with the pull, as before
+        maps = real_maps(*args, **kwargs)
+        maps["back_side"] = maps["front_side"].copy()
+        return maps
+
+    monkeypatch.setattr(clothed_proxy, "body_maps", one_arm)
     old_back, old_front = beside_the_torso(_proxy_of_folded_arm())
-    assert old_back < back - 0.08, (old_back, back)  # was -0.16: 0.12 m behind the upper arm's back
+    assert old_back < back - 0.08, (old_back, back)  # -0.16: 0.12 m behind the upper arm's back
     assert abs(old_front - front) < 0.01
 
 
