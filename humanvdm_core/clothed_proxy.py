@@ -19,15 +19,14 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    single photo's arm depth is the fit's least certain, and the proxy fills everything between an arm
    and the body behind it. The arm's far surface moves with it, unless it is the other arm's: behind a
    forearm folded across the other arm lies that arm, which stays where it is rather than being pushed
-   out behind the back. Likewise where an arm or a hand is the body's
-   farthest surface (behind the body, hidden by it: the far arm of a person seen in profile), it stands
-   at most :data:`ARM_REACH` behind the farthest surface of the body without its arms
-   (:func:`arm_reach_limit`), not a fin the arm's length deep. An arm whose hand rests on the head
-   (``placed_arms``) keeps its fitted depth wherever it is: the contact fixes the hand's depth, and a
-   forearm rising to it from the chest then stands as far before the chest and the face as its length
-   demands. A hand's depth is its mean over :data:`HAND_SMOOTH` of the grid (:func:`smooth_hands`): the
-   photo does not show the fingers' depth, and the fitted fingers' relief would stand out from the side
-   as shards.
+   out behind the back. Likewise where an arm or a hand is the body's farthest surface (behind the body,
+   hidden by it: the far arm of a person seen in profile), it stands at most :data:`ARM_REACH` behind
+   the farthest surface of the body without its arms (:func:`arm_reach_limit`), not a fin the arm's
+   length deep. An arm whose hand rests on the head (``placed_arms``) keeps its fitted depth wherever it
+   is: the contact fixes the hand's depth, and a forearm rising to it from the chest then stands as far
+   before the chest and the face as its length demands. A hand's depth is its mean over
+   :data:`HAND_SMOOTH` of the grid (:func:`smooth_hands`): the photo does not show the fingers' depth,
+   and the fitted fingers' relief would stand out from the side as shards.
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
    feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
    (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of

@@ -710,11 +710,11 @@ def test_outside_of_keeps_enclosed_holes_apart():
     assert out[0, 0] and out[29, 15] and not out[15, 15] and not out[7, 7]
 
 
-def _proxy_of_torso_with_arm(thickness: float, centre_z: float, placed_arms: tuple[int, ...] = (),
-                              neck: float = 0.6):
+def _proxy_of_torso_with_boxes(boxes: list[tuple[tuple[float, float, float], tuple[float, float, float], str]],
+                               placed_arms: tuple[int, ...] = (), neck: float = 0.6):
     """The clothed proxy of a cylinder "torso" (front surface at z = 0.15, back at -0.15; the subject faces
-    +z, the camera is on +z; its "head" from y = ``neck`` up) with a 0.6 m box "arm" (the left's) along
-    z at y = 0.1, ``thickness`` wide, centred at ``centre_z``."""
+    +z, the camera is on +z; its "head" from y = ``neck`` up) with ``boxes``, each (extents, centre, the
+    joint that moves it), in a 128² input view."""
     import trimesh
 
     from humanvdm_core.cameras import orbit_cameras
@@ -723,20 +723,33 @@ def _proxy_of_torso_with_arm(thickness: float, centre_z: float, placed_arms: tup
     from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
-    v, f, w, _ = _cylinder_body(max_edge=0.05, neck=neck)
-    arm = trimesh.creation.box(extents=(thickness, thickness, 0.6))
-    arm.apply_translation((0.0, 0.1, centre_z))
-    va, fa = np.asarray(arm.vertices, np.float64), np.asarray(arm.faces, np.int64) + len(v)
-    verts, faces = np.concatenate([v, va]), np.concatenate([f, fa])
-    weights = np.zeros((len(verts), 3))
+    v, f, w, names = _cylinder_body(max_edge=0.05, neck=neck)
+    parts = [(v, f)]
+    for extents, centre, _ in boxes:
+        box = trimesh.creation.box(extents=extents)
+        box.apply_translation(centre)
+        parts.append((np.asarray(box.vertices, np.float64), np.asarray(box.faces, np.int64)))
+    starts = np.cumsum([0] + [len(p[0]) for p in parts])
+    verts = np.concatenate([p[0] for p in parts])
+    faces = np.concatenate([p[1] + start for p, start in zip(parts, starts[:-1], strict=True)])
+    names = names + [name for *_, name in boxes]
+    weights = np.zeros((len(verts), len(names)))
     weights[: len(v), :2] = w
-    weights[len(v):, 2] = 1.0
-    names = ["spine01", "head", "lowerarm01.L"]
+    for j in range(len(boxes)):  # each box moves with its own joint
+        weights[starts[j + 1]:starts[j + 2], 2 + j] = 1.0
     size = 128
     cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
     mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
     return build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
                                grid=size, placed_arms=placed_arms)
+
+
+def _proxy_of_torso_with_arm(thickness: float, centre_z: float, placed_arms: tuple[int, ...] = (),
+                              neck: float = 0.6):
+    """The cylinder "torso" of :func:`_proxy_of_torso_with_boxes` with a 0.6 m box "arm" (the left's) along
+    z at y = 0.1, ``thickness`` wide, centred at ``centre_z``."""
+    return _proxy_of_torso_with_boxes([((thickness, thickness, 0.6), (0.0, 0.1, centre_z), "lowerarm01.L")],
+                                      placed_arms, neck)
 
 
 def test_an_arm_in_front_of_the_body_is_pulled_back_to_arm_reach():
@@ -806,36 +819,11 @@ def test_an_arm_whose_hand_a_contact_places_keeps_its_fitted_depth():
 
 
 def _proxy_of_folded_arm():
-    """The clothed proxy of a cylinder "torso" (radius 0.15 m, the camera on +z) with its right "upper arm"
-    hanging beside it (a 0.08 m box along y at x = -0.22, z = 0) and the left "forearm" folded across it
-    far in front (a 0.08 m box along x from x = 0.1 to -0.3 at y = 0, z = 0.4, over the upper arm)."""
-    import trimesh
-
-    from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.clothed_proxy import build_clothed_proxy
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
-
-    torch.set_num_threads(1)
-    v, f, w, _ = _cylinder_body(max_edge=0.05)
-    upper = trimesh.creation.box(extents=(0.08, 0.6, 0.08))
-    upper.apply_translation((-0.22, 0.0, 0.0))
-    fore = trimesh.creation.box(extents=(0.4, 0.08, 0.08))
-    fore.apply_translation((-0.1, 0.0, 0.4))
-    parts = [(v, f), (np.asarray(upper.vertices), np.asarray(upper.faces)), (np.asarray(fore.vertices), np.asarray(fore.faces))]
-    starts = np.cumsum([0] + [len(p[0]) for p in parts])
-    verts = np.concatenate([p[0] for p in parts])
-    faces = np.concatenate([p[1] + s for p, s in zip(parts, starts, strict=False)])
-    weights = np.zeros((len(verts), 4))
-    weights[: len(v), :2] = w
-    weights[starts[1]:starts[2], 2] = 1.0
-    weights[starts[2]:, 3] = 1.0
-    names = ["spine01", "head", "upperarm01.R", "lowerarm01.L"]
-    size = 128
-    cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
-    mask = render_views(TexturedMesh(verts, faces), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3]
-    return build_clothed_proxy(verts, faces, weights, names, cam, np.full((size, size, 3), 0.5, np.float32), mask,
-                               grid=size)
+    """The cylinder "torso" of :func:`_proxy_of_torso_with_boxes` with its right "upper arm" hanging beside
+    it (a 0.08 m box along y at x = -0.22, z = 0) and the left "forearm" folded across it far in front (a
+    0.08 m box along x from x = 0.1 to -0.3 at y = 0, z = 0.4, over the upper arm)."""
+    return _proxy_of_torso_with_boxes([((0.08, 0.6, 0.08), (-0.22, 0.0, 0.0), "upperarm01.R"),
+                                       ((0.4, 0.08, 0.08), (-0.1, 0.0, 0.4), "lowerarm01.L")])
 
 
 def test_a_forearm_folded_across_the_other_arm_does_not_push_that_arm_behind_the_back(monkeypatch):
