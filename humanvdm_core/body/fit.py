@@ -65,7 +65,14 @@ Contract:
     :data:`TORSO_TRUSTED_DEG` off upright on (a bow), and as upright within :data:`TORSO_NOISE_DEG`
     (between the two the lean it counts grows from 0 to the whole): MediaPipe leans the torso of
     people who stand upright 3-13 deg forward (synthetic renders at 10 deg elevation), and a real
-    photo's unknown camera height tilts it either way. A single photo of a person standing still
+    photo's unknown camera height tilts it either way. A single photo of a seated person
+    (:func:`~humanvdm_core.body.landmarks.seated`: both thighs point at the camera, hiding the pelvis)
+    also gets the spine term (``spine_prior_weight``): the squared axis-angle of the spine's fitted
+    joints (:data:`SPINE_JOINTS`), so the pelvis sits under the torso line rather than rolled 10-20 deg
+    forward under a spine bent 20-30 deg back (a slouch pushing the seat out from under the torso), and
+    its 2D knees are first raised (:func:`~humanvdm_core.body.landmarks.raise_seated_knees`,
+    ``FitOptions.seated_knees``): the detector puts them 0.07-0.14 of the torso too low (the more, the
+    lower the camera), which sloped the thighs 15-20 deg down. A single photo of a person standing still
     (:func:`standing_still`) also gets the stance term (``stance_weight``, :meth:`_Problem.stance_term`):
     each knee bent beyond :data:`STANCE_KNEE_FREE_DEG` and the ankles' centre more than
     :data:`STANCE_FEET_FREE` in front of or behind the hips' (along the camera's horizontal view)
@@ -75,7 +82,8 @@ Contract:
 
 - The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
   :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
-  :func:`standing_still`) live in :mod:`humanvdm_core.body.landmarks`, with their thresholds.
+  :func:`standing_still`, :func:`seated`, :func:`raise_seated_knees`) live in
+  :mod:`humanvdm_core.body.landmarks`, with their thresholds.
 - Left/right confusion: a keypoint detector often swaps the person's left and right on back and
   side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
   that better agrees with the current 3D estimate is used; it is decided after phase 1 and again
@@ -113,7 +121,9 @@ from humanvdm_core.body.landmarks import (
     facing_shoulders,
     frontal_arms,
     onto_the_head,
+    raise_seated_knees,
     reach_directions,
+    seated,
     standing_still,
     torso_length,
 )
@@ -148,6 +158,7 @@ BONES: tuple[tuple[int | tuple[int, ...], int | tuple[int, ...]], ...] = (
     (11, 13), (13, 15), (12, 14), (14, 16),
     (6, 5), (12, 11), ((11, 12), (5, 6)), ((5, 6), 0),
 )
+SPINE_JOINTS = ("spine01", "spine03", "spine1", "spine2", "spine3")  # Anny's, SMPL's: the spine term
 TORSO_BONES = (8, 9, 10)  # shoulder line, hip line, spine: fitted with the global orientation in phase 1
 KEYPOINT_SIGMA = 0.02  # Cauchy scale of the keypoint residual, fraction of the image height
 SILHOUETTE_SIGMA = 0.01  # silhouette distances are divided by this (fraction of the image size)
@@ -162,6 +173,7 @@ TORSO_NOISE_DEG = 10.0  # the detector's torso this close to upright counts as u
 TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (between: a linear ramp)
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
 STANCE_WEIGHT = 10.0  # default FitOptions.stance_weight
+SPINE_PRIOR_WEIGHT = 1.0  # default FitOptions.spine_prior_weight
 STANCE_KNEE_FREE_DEG = 10.0  # a knee bent less than this costs nothing ..
 STANCE_FEET_FREE = 0.05  # .. nor ankles this close (world units) to below the hips along the view
 
@@ -206,6 +218,11 @@ class FitOptions:
     facing_shoulders: bool = True
     # a single photo of a person standing still (standing_still): knees straight, feet below the hips
     stance_weight: float = STANCE_WEIGHT
+    # a single photo of a seated person (landmarks.seated): the spine's fitted joints (SPINE_JOINTS) held
+    # near the rest pose ...
+    spine_prior_weight: float = SPINE_PRIOR_WEIGHT
+    # ... and its 2D knees raised first (raise_seated_knees)
+    seated_knees: bool = True
     # a single photo: an arm held out to the side may reach past its 2D elbow and wrist (reach_directions)
     arm_reach_past_keypoints: bool = True
 
@@ -215,7 +232,7 @@ class FitOptions:
         for name in ("keypoint_weight", "silhouette_weight", "silhouette_cover_weight", "bone_direction_weight",
                      "pose_prior_weight", "single_view_pose_prior_weight", "single_view_pose_prior_weight_3d",
                      "shape_prior_weight", "scale_prior_weight", "refine_prior_weight", "upright_weight",
-                     "stance_weight"):
+                     "stance_weight", "spine_prior_weight"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.keypoint_weight == 0 and self.silhouette_weight == 0 and self.silhouette_cover_weight == 0:
@@ -426,6 +443,14 @@ class _Problem:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
+        # a single photo of a seated person: its 2D knees raised, its spine held straight (fit_body)
+        self.seated = sum(o.has_keypoints for o in observations) == 1 and any(
+            o.has_keypoints and seated(o.confidences, o.world_keypoints) for o in observations)
+        if self.seated and options.seated_knees:
+            for f, o in enumerate(observations):
+                looks = cams.c2w[f][:3, 2]  # the camera's viewing direction, world axes (+Y up)
+                self.raw_kp[f] = raise_seated_knees(self.raw_kp[f], o.confidences, o.world_keypoints,
+                                                    float(np.degrees(np.arcsin(np.clip(-looks[1], -1.0, 1.0)))))
         self.reach_past = options.arm_reach_past_keypoints and sum(o.has_keypoints for o in observations) == 1
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)
@@ -434,8 +459,9 @@ class _Problem:
         self.swapped_3d = self.swapped.copy()
         self.set_swaps(self.swapped)
         names = set(model.pose_joint_names)
-        self.fit_joint_ids = torch.as_tensor([model.pose_index(n) for n in FIT_JOINTS if n in names],
-                                             dtype=torch.int64)
+        fitted = [n for n in FIT_JOINTS if n in names]
+        self.fit_joint_ids = torch.as_tensor([model.pose_index(n) for n in fitted], dtype=torch.int64)
+        self.spine_ids = torch.as_tensor([i for i, n in enumerate(fitted) if n in SPINE_JOINTS], dtype=torch.int64)
 
     def set_swaps(self, swapped: np.ndarray, swapped_3d: np.ndarray | None = None) -> None:
         """Use the detections with the flagged groups' left/right exchanged: ``swapped`` (F, G) for the
@@ -706,6 +732,7 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
     few_views = options.single_view_pose_prior_weight_3d if depth_seen else options.single_view_pose_prior_weight
     pose_prior = max(options.pose_prior_weight, few_views / n_views ** 2)
     upright = options.upright_weight / n_views ** 2  # a prior for few views: many views see the lean
+    spine = options.spine_prior_weight if problem.seated else 0.0
     lg.debug("pose prior %.3g (%d view(s) with keypoints, 3D landmarks: %s)", pose_prior, n_views, depth_seen)
 
     # phase 1b: the limbs' rotations from the 3D bone directions alone. The 2D keypoints cannot tell a
@@ -751,6 +778,8 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
         if problem.uses_silhouette:
             loss = loss + problem.silhouette_loss(out.vertices[0])
         loss = loss + pose_prior * joint_rot.pow(2).sum(-1).mean()
+        if spine > 0:
+            loss = loss + spine * joint_rot[problem.spine_ids].pow(2).sum()
         if upright > 0:
             loss = loss + upright * problem.torso_term(out.coco17[0])
         if stance_forward is not None:
