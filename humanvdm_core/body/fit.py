@@ -68,8 +68,8 @@ Contract:
     photo's unknown camera height tilts it either way. A single photo of a seated person
     (:func:`~humanvdm_core.body.landmarks.seated`: both thighs point at the camera, hiding the pelvis)
     also gets the spine term (``spine_prior_weight``): the squared axis-angle of the spine's fitted
-    joints (:data:`SPINE_JOINTS`), so the pelvis sits under the torso line rather than rolled 10-20 deg
-    forward under a spine bent 20-30 deg back (a slouch pushing the seat out from under the torso), and
+    joints (:data:`SPINE_JOINTS`), so the pelvis sits under the torso line rather than rolled some 13 deg
+    forward under a spine bent 27 deg back (a slouch pushing the seat out from under the torso), and
     its 2D knees are first raised (:func:`~humanvdm_core.body.landmarks.raise_seated_knees`,
     ``FitOptions.seated_knees``): the detector puts them 0.07-0.14 of the torso too low (the more, the
     lower the camera), which sloped the thighs 15-20 deg down. A single photo of a person standing still
