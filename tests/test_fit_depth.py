@@ -482,9 +482,10 @@ def test_standing_still_tells_a_stance_from_a_stride_a_seat_and_hidden_legs():
 
 def test_only_a_seated_persons_knees_are_raised():
     """seated / raise_seated_knees on hand-made landmarks: both thighs' 3D landmarks pointing at the camera
-    (-z) raise both 2D knees by a share of the 2D torso that shrinks as the camera rises; thighs hanging
-    down, one thigh forward (a step), thighs pointing away (a seated person seen from behind), an unsure
-    knee or no 3D landmarks leave them."""
+    raise both 2D knees by a share of the 2D torso that shrinks as the camera rises (read off the world's
+    up in the camera's axes; seen from 30 deg above the same thighs still count); thighs hanging down,
+    one thigh forward (a step), thighs pointing away (a seated person seen from behind), an unsure knee
+    or no 3D landmarks leave them."""
     from humanvdm_core.body.landmarks import KNEE_RAISE_LEVEL, KNEE_RAISE_PER_DEG, raise_seated_knees, seated
 
     kp = np.zeros((17, 2))
@@ -493,12 +494,17 @@ def test_only_a_seated_persons_knees_are_raised():
     world = np.zeros((17, 3))
     world[[11, 12]] = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
     world[[13, 14]] = [[0.1, 0.15, -0.4], [-0.1, 0.15, -0.4]]  # 69 deg from straight down, at the camera
-    assert seated(conf, world)
+    def up(elevation):  # the world's up in the axes of a camera that many degrees above
+        return np.array([0.0, -np.cos(np.radians(elevation)), -np.sin(np.radians(elevation))])
+
+    raised = {}
     for elevation in (10.0, 30.0):
-        raised = raise_seated_knees(kp, conf, world, elevation)
+        assert seated(conf, world, up(elevation))
+        raised[elevation] = raise_seated_knees(kp, conf, world, up(elevation))
         share = KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG * elevation
-        assert np.allclose(raised[[13, 14], 1], 240 - share * 100) and np.array_equal(raised[:13], kp[:13])
-    assert 240 - raise_seated_knees(kp, conf, world, 10.0)[13, 1] > 240 - raise_seated_knees(kp, conf, world, 30.0)[13, 1] + 5
+        assert np.allclose(raised[elevation][[13, 14], 1], 240 - share * 100)
+        assert np.array_equal(raised[elevation][:13], kp[:13])
+    assert raised[30.0][13, 1] > raised[10.0][13, 1] + 5  # raised less from above
     hanging, step, away = world.copy(), world.copy(), world.copy()
     hanging[[13, 14]] = [[0.1, 0.45, -0.05], [-0.1, 0.45, -0.05]]
     step[14] = [-0.1, 0.45, -0.05]
@@ -506,7 +512,7 @@ def test_only_a_seated_persons_knees_are_raised():
     unsure = conf.copy()
     unsure[13] = 0.2
     for c, w in ((conf, hanging), (conf, step), (conf, away), (unsure, world), (conf, None)):
-        assert not seated(c, w) and np.array_equal(raise_seated_knees(kp, c, w, 10.0), kp)
+        assert not seated(c, w, up(10.0)) and np.array_equal(raise_seated_knees(kp, c, w, up(10.0)), kp)
 
 
 def test_frontal_arms_moves_only_arms_held_out_to_the_side():

@@ -71,7 +71,7 @@ Contract:
     joints (:data:`SPINE_JOINTS`), so the pelvis sits under the torso line rather than rolled some 13 deg
     forward under a spine bent 27 deg back (a slouch pushing the seat out from under the torso), and
     its 2D knees are first raised (:func:`~humanvdm_core.body.landmarks.raise_seated_knees`,
-    ``FitOptions.seated_knees``): the detector puts them 0.07-0.14 of the torso too low (the more, the
+    ``FitOptions.seated_knees``): the detector puts them 0.06-0.14 of the torso too low (the more, the
     lower the camera), which sloped the thighs 15-20 deg down. A single photo of a person standing still
     (:func:`standing_still`) also gets the stance term (``stance_weight``, :meth:`_Problem.stance_term`):
     each knee bent beyond :data:`STANCE_KNEE_FREE_DEG` and the ankles' centre more than
@@ -445,12 +445,10 @@ class _Problem:
                     self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
         # a single photo of a seated person: its 2D knees raised, its spine held straight (fit_body)
         self.seated = sum(o.has_keypoints for o in observations) == 1 and any(
-            o.has_keypoints and seated(o.confidences, o.world_keypoints) for o in observations)
+            o.has_keypoints and seated(o.confidences, o.world_keypoints, ups[f]) for f, o in enumerate(observations))
         if self.seated and options.seated_knees:
             for f, o in enumerate(observations):
-                looks = cams.c2w[f][:3, 2]  # the camera's viewing direction, world axes (+Y up)
-                self.raw_kp[f] = raise_seated_knees(self.raw_kp[f], o.confidences, o.world_keypoints,
-                                                    float(np.degrees(np.arcsin(np.clip(-looks[1], -1.0, 1.0)))))
+                self.raw_kp[f] = raise_seated_knees(self.raw_kp[f], o.confidences, o.world_keypoints, ups[f])
         self.reach_past = options.arm_reach_past_keypoints and sum(o.has_keypoints for o in observations) == 1
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)

@@ -19,7 +19,7 @@ systematic error of the detector or says which term of the fit applies:
   term then keeps the knees straight and the feet below the hips);
 - :func:`seated`: whether the photo shows a seated (or crouching) person, both thighs pointing at the
   camera (the fit then holds the spine straight); :func:`raise_seated_knees`: such a person's 2D knees,
-  which the detector puts 0.07-0.14 of the torso too low against its other joints (the more, the lower
+  which the detector puts 0.06-0.14 of the torso too low against its other joints (the more, the lower
   the camera), are raised by that much.
 
 Every function is pure (numpy in, numpy out) and leaves everything it does not name unchanged. The
@@ -74,13 +74,13 @@ STANCE_ROWS = 0.015
 STANCE_BEND_DEG = 50.0
 LEGS = ((11, 13, 15), (12, 14, 16))  # COCO-17 hip, knee, ankle: left, right
 # A seated person (see seated): both thighs' 3D landmarks point at the camera, more than SEATED_TOWARDS of
-# their unit direction along -z, their hips and knees at least STANCE_CONFIDENCE sure. Their 2D knees are
-# raised by KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG x the camera's elevation (degrees, at least 0) of the
-# 2D torso's length (raise_seated_knees). On 576² renders of seven seated synthetic subjects
-# (testdata.synthetic, seeds 1-7) the detector's 2D knees lay, against its hips and shoulders (which
-# stand within 0.05 of the true joints, as on standing subjects, whose knees do too), 0.139 (mean) of
-# the torso too low from 10 deg above, 0.112 from 20 and 0.071 from 30 (the true knees 0.07-0.15 above
-# its own), so the thighs came out sloping 15-20 deg down.
+# their unit direction along the world's horizontal towards it (so a camera above, which sees a level thigh
+# point down and away, reads it the same), their hips and knees at least STANCE_CONFIDENCE sure. Their 2D knees are raised by
+# KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG x the camera's elevation (degrees; at least 0) of the 2D torso's
+# length (raise_seated_knees). Measured (benchmarks/bench_landmarks.py: seven seated synthetic subjects,
+# 576²), the detector's 2D knees lie, against its hips and shoulders (which stand within 0.04 of the
+# true joints, as on standing subjects, whose knees do too), 0.138 of the torso too low (mean) from 10
+# deg above, 0.111 from 20 and 0.063 from 30, so the thighs came out sloping 15-20 deg down.
 SEATED_TOWARDS = 0.6
 KNEE_RAISE_LEVEL = 0.175
 KNEE_RAISE_PER_DEG = 0.0035
@@ -266,23 +266,34 @@ def onto_the_head(world: np.ndarray, confidences: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def seated(confidences: np.ndarray, world: np.ndarray | None) -> bool:
+def thighs_towards(world: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(2,) left and right: the share of each thigh's unit direction in the 3D landmarks ``world`` (17, 3)
+    that points at the camera along the world's horizontal (``up``: the world's up in the camera's
+    axes); 1 for a level thigh aimed at the camera, 0 for one hanging straight down."""
+    up = up / np.linalg.norm(up)
+    towards = np.array([0.0, 0.0, -1.0]) + up[2] * up  # -z without its vertical part
+    towards /= max(float(np.linalg.norm(towards)), 1e-9)
+    thighs = world[[13, 14]] - world[[11, 12]]
+    return thighs @ towards / np.maximum(np.linalg.norm(thighs, axis=1), 1e-9)
+
+
+def seated(confidences: np.ndarray, world: np.ndarray | None, up: np.ndarray) -> bool:
     """Whether the detector's 3D landmarks ``world`` (17, 3, or None) show both thighs pointing at the camera
-    (:data:`SEATED_TOWARDS`): a person seated or crouching, facing it."""
+    (:func:`thighs_towards` above :data:`SEATED_TOWARDS`): a person seated or crouching, facing it."""
     if world is None or min(confidences[[11, 12, 13, 14]]) < STANCE_CONFIDENCE:
         return False
-    thighs = world[[13, 14]] - world[[11, 12]]
-    return bool(np.all(-thighs[:, 2] > SEATED_TOWARDS * np.linalg.norm(thighs, axis=1)))
+    return bool(np.all(thighs_towards(world, up) > SEATED_TOWARDS))
 
 
 def raise_seated_knees(keypoints: np.ndarray, confidences: np.ndarray, world: np.ndarray | None,
-                       elevation_deg: float) -> np.ndarray:
+                       up: np.ndarray) -> np.ndarray:
     """2D ``keypoints`` (17, 2 pixels) with a :func:`seated` person's knees raised by ``KNEE_RAISE_LEVEL -
-    KNEE_RAISE_PER_DEG * elevation_deg`` (the camera's elevation above the person, at least 0) of the 2D
-    torso's length; a copy, unchanged for anyone else."""
+    KNEE_RAISE_PER_DEG`` x the camera's elevation (read off ``up``, the world's up in the camera's axes) of
+    the 2D torso's length; a copy, unchanged for anyone else."""
     out = keypoints.copy()
-    if seated(confidences, world):
-        out[[13, 14], 1] -= max(KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG * elevation_deg, 0.0) * torso_length(keypoints)
+    if seated(confidences, world, up):
+        elevation = float(np.degrees(np.arcsin(np.clip(-up[2] / np.linalg.norm(up), -1.0, 1.0))))
+        out[[13, 14], 1] -= max(KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG * elevation, 0.0) * torso_length(keypoints)
     return out
 
 
