@@ -3,8 +3,9 @@
 Subjects: ``bench_pipeline``'s three (``results/pipeline.json``: subject0 seated, subject1 arms raised,
 subject2 standing), ``synthetic.GARMENT_EXAMPLES`` (``gown``, ``skirt_long_hair``, ``walking_skirt``, ``long_coat``),
 ``a_pose`` (arms held out 45 deg to the side), ``hand_to_face`` (the right palm on the cheek), ``hands_on_head``
-(both hands on the crown, elbows out), ``hands_clasped`` (the hands together before the belly) and ``arms_crossed``
-(the forearms folded across the lower chest), each built with
+(both hands on the crown, elbows out), ``hands_clasped`` (the hands together before the belly), ``arms_crossed``
+(the forearms folded across the lower chest) and two more seated subjects, ``seated_1`` and ``seated_5`` (seeds 1
+and 5; 5 is the stability suite's), each built with
 ``make_subject`` (512² texture) and normalised like a scan; and headwear (:data:`HEADWEAR`: ``hat`` a wide
 brim and a crown, ``afro``, ``top_bun``, ``helmet`` open at the face), shapes in one colour added around
 the subject's head before normalising (:func:`with_headwear`; all closed but the helmet's open shell). The photo is the subject rendered at
@@ -92,6 +93,7 @@ def specs() -> dict:
     out["hands_on_head"] = SubjectSpec(pose="hands-on-head", seed=11)  # both hands on the crown, elbows out
     out["hands_clasped"] = SubjectSpec(pose="hands-clasped", seed=5)  # the hands together before the belly
     out["arms_crossed"] = SubjectSpec(pose="arms-crossed", seed=13)  # the forearms folded across the lower chest
+    out.update({f"seated_{seed}": SubjectSpec(pose="seated", seed=seed) for seed in (1, 5)})  # more seated people
     out.update({name: SubjectSpec(**kw) for name, (kw, _, _) in HEADWEAR.items()})
     return out
 
