@@ -430,12 +430,13 @@ class _Problem:
                                                        np.float32)[:, None]
         # a single photo only: other views see the depth (in an orbit's side views an arm held out towards
         # the camera lies on the head across the image plane)
-        if options.hands_on_head and sum(o.has_keypoints for o in observations) == 1:
+        single = sum(o.has_keypoints for o in observations) == 1
+        if options.hands_on_head and single:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = onto_the_head(self.raw_world[f], o.confidences)
         ups = cams.w2c[:, :3, :3] @ np.array([0.0, 1.0, 0.0])  # the world's up in each camera's axes
-        if options.facing_shoulders and sum(o.has_keypoints for o in observations) == 1:
+        if options.facing_shoulders and single:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
                     self.raw_world[f] = facing_shoulders(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
@@ -444,12 +445,12 @@ class _Problem:
                 if o.world_keypoints is not None:
                     self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
         # a single photo of a seated person: its 2D knees raised, its spine held straight (fit_body)
-        self.seated = sum(o.has_keypoints for o in observations) == 1 and any(
+        self.seated = single and any(
             o.has_keypoints and seated(o.confidences, o.world_keypoints, ups[f]) for f, o in enumerate(observations))
         if self.seated and options.seated_knees:
             for f, o in enumerate(observations):
                 self.raw_kp[f] = raise_seated_knees(self.raw_kp[f], o.confidences, o.world_keypoints, ups[f])
-        self.reach_past = options.arm_reach_past_keypoints and sum(o.has_keypoints for o in observations) == 1
+        self.reach_past = options.arm_reach_past_keypoints and single
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)
         self.bone_end = torch.as_tensor(end, dtype=dt)
