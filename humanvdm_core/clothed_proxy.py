@@ -157,8 +157,10 @@ class ClothedProxy:
 
 # ----------------------------------------------------------------------------- body maps
 
-def _reflected(vertices: np.ndarray, camera: Cameras) -> tuple[np.ndarray, float]:
-    """Vertices moved along their camera rays so depth order reverses: z' = 2c - z (same pixels)."""
+def reflected_along_rays(vertices: np.ndarray, camera: Cameras) -> tuple[np.ndarray, float]:
+    """``vertices`` (V, 3, world) moved along the rays of ``camera`` (its first) so their depth order
+    reverses, and ``c``: a vertex at camera depth z goes to 2c - z, on the same pixel. Rendering the moved
+    mesh gives each pixel its farthest surface: depth 2c - (the rendered depth)."""
     w2c = camera.w2c[0]
     cam = vertices @ w2c[:3, :3].T + w2c[:3, 3]
     c = float(cam[:, 2].max()) + 0.1
@@ -191,7 +193,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     flat = np.arange(3 * len(faces)).reshape(-1, 3)
     corners = np.asarray(vertices)[faces].reshape(-1, 3)
     near = render_views(TexturedMesh(corners, flat, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
-    world, c = _reflected(np.asarray(corners, np.float64), camera)
+    world, c = reflected_along_rays(np.asarray(corners, np.float64), camera)
     far = render_views(TexturedMesh(world, flat, vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
     w2c = camera.w2c[0]
     z = np.asarray(vertices, np.float64) @ w2c[2, :3] + w2c[2, 3]
