@@ -10,13 +10,16 @@ Per scan of ``../shared/fixtures/scans/`` (as ``bench_protocol``: turned to face
 elevation 10 deg, ``--photo-size``² RGBA over white):
 
 1. ``build_body_proxy(photo)`` builds the proxy as ``diffuse`` does (every default);
-2. the scan is rendered in the proxy's input view (the photo's camera with the input view's crop and
-   scale, registered by the silhouettes' boxes): its nearest and farthest camera depth per pixel;
+2. the scan is rendered in the proxy's input view (the input view's crop and scale of the photo,
+   registered by the silhouettes' boxes, at the proxy camera's focal length from farther back, so the
+   scan's shape is a similarity of the proxy's world): its nearest and farthest camera depth per pixel;
 3. per *case*, the proxy's front (back) sheet vertices in the case's rows (shares of the input view's
    mask height: :data:`REGIONS`) move along their rays onto the scan's nearest (farthest) surface, scaled
    by one factor per scan so the median depths agree (the fitted body's size differs from the scan's);
-   border vertices, where the two sheets meet, and pixels the scan does not cover (or where its depth
-   stands more than :data:`OUTLIER` off its 5x5 median: a fingertip's far surface) keep their depth;
+   the border vertices, where the two sheets meet, move to the middle of the two when both sheets move,
+   else they stay; a pixel the scan does not cover (the proxy's footprint is the mask, a grid pixel
+   wider), or where its depth stands more than :data:`OUTLIER` off its 5x5 median (a fingertip's far
+   surface), takes the nearest other pixel's depths;
 4. each proxy is scored at left / back / right (azimuth 90 / 180 / 270, the proxy's elevation, 576²)
    against the scan at the same cameras, re-framed as ``bench_protocol`` (512²): ``unseen`` (mean PSNR
    of the three), ``side_iou`` (mean of left and right), ``back_iou``.
@@ -60,12 +63,18 @@ CASES = [("now", None, "")] + [(name, rows, "fb") for name, rows in REGIONS.item
     ("all, front sheet only", REGIONS["all"], "f"), ("all, back sheet only", REGIONS["all"], "b")]
 
 
-def scan_depths(mesh, photo_cam, photo_alpha: np.ndarray, view_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The scan's nearest and farthest camera depth (0: empty) per pixel of the proxy's input view: the
-    photo's camera with the intrinsics moved by the similarity that takes the photo's silhouette box to
-    the input view's (``prepare_input_view`` crops and scales the photo by one factor)."""
-    from humanvdm_core.cameras import Cameras
+def scan_depths(mesh, photo_cam, photo_alpha: np.ndarray, view_mask: np.ndarray, focal: float,
+                radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's nearest and farthest camera depth per pixel of the proxy's input view (``view_mask``),
+    seen as the proxy's camera sees: ``prepare_input_view`` crops and scales the photo by one factor (found
+    here from the two silhouettes' boxes), which gives the photo's camera a focal length the proxy's
+    camera (``focal``) lacks; the scan is rendered at the proxy's focal length from a camera moved
+    back along the same axis (the photo's ``radius`` times the focal lengths' ratio) so it fills the
+    input view the same, and its shape is then a similarity of the proxy's world (a scan seen at the
+    photo's focal length would come out deeper or flatter than it is)."""
+    from humanvdm_core.cameras import Cameras, orbit_cameras
     from humanvdm_core.clothed_proxy import reflected_along_rays
+    from humanvdm_core.image_fill import nearest_fill
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import TexturedMesh
 
@@ -76,12 +85,14 @@ def scan_depths(mesh, photo_cam, photo_alpha: np.ndarray, view_mask: np.ndarray)
     b0, b1 = box(photo_alpha), box(view_mask)
     s = (b1[3] - b1[1]) / (b0[3] - b0[1])
     shift = 0.5 * (b1[:2] + b1[2:]) - s * 0.5 * (b0[:2] + b0[2:])
-    K = photo_cam.K.copy()
-    K[0, :2, :] *= s
-    K[0, :2, 2] += shift
+    ratio = focal / (s * float(photo_cam.K[0, 0, 0]))
     size = view_mask.shape[0]
-    cam = Cameras(K, photo_cam.c2w.copy(), size, size, photo_cam.azimuth_deg, photo_cam.elevation_deg,
-                  photo_cam.radius)
+    back = orbit_cameras(1, size, elevation_deg=float(photo_cam.elevation_deg[0]), radius=radius * ratio,
+                         azimuths_deg=photo_cam.azimuth_deg)
+    K = back.K.copy()
+    K[0, 0, 0] = K[0, 1, 1] = focal
+    K[0, :2, 2] = s * photo_cam.K[0, :2, 2] + shift
+    cam = Cameras(K, back.c2w, size, size, back.azimuth_deg, back.elevation_deg, back.radius)
     near = render_views(mesh, cam, WHITE, samples=1).depth[0]
     moved, c = reflected_along_rays(np.asarray(mesh.vertices, np.float64), cam)
     plain = np.ones((len(moved), 3), np.float32)
@@ -91,7 +102,8 @@ def scan_depths(mesh, photo_cam, photo_alpha: np.ndarray, view_mask: np.ndarray)
     keep = (near > 0) & (far > 0)
     for depth in (near, far):
         keep &= np.abs(depth - cv2.medianBlur(depth.astype(np.float32), 5)) <= OUTLIER
-    return np.where(keep, near, 0.0), np.where(keep, far, 0.0)
+    # every other pixel (the proxy's footprint reaches a pixel beyond the scan's outline) takes the nearest kept one's
+    return nearest_fill(near, keep), nearest_fill(far, keep)
 
 
 def with_scan_depths(proxy, near: np.ndarray, far: np.ndarray, rows: list[tuple[float, float]] | None,
@@ -112,8 +124,9 @@ def with_scan_depths(proxy, near: np.ndarray, far: np.ndarray, rows: list[tuple[
     front = np.asarray(proxy.clothed.front)
     border = np.zeros(len(verts), bool)
     border[:n] = border[n:] = np.linalg.norm(verts[:n] - verts[n:], axis=1) < 1e-6
-    target = np.where(front, near[v, u], far[v, u])
-    covered = (near[v, u] > 0) & (far[v, u] > 0) & ~border
+    # the border, where the sheets meet (the outline from the side), moves to the scan's middle when both move
+    target = np.where(border, 0.5 * (near[v, u] + far[v, u]), np.where(front, near[v, u], far[v, u]))
+    covered = ~border | (sheets == "fb")
     mask_rows = np.nonzero((proxy.input_view.mask > 0.5).any(axis=1))[0]
     r = (v - mask_rows.min()) / max(1, np.ptp(mask_rows))
     scale = float(np.median(z[covered]) / np.median(target[covered]))
@@ -140,7 +153,9 @@ def measure(folder: Path, photo_size: int, tmp: Path) -> dict:
     photo = tmp / f"{folder.name}.png"
     write_png(photo, rgba)
     proxy = build_body_proxy(photo)
-    near, far = scan_depths(mesh, photo_cam, rgba[..., 3], proxy.input_view.mask)
+    front_cam = proxy.cameras.subset([proxy.front_index])
+    near, far = scan_depths(mesh, photo_cam, rgba[..., 3], proxy.input_view.mask, float(front_cam.K[0, 0, 0]),
+                            framing_radius())
     elevation = float(proxy.cameras.elevation_deg[0])
     cams = orbit_cameras(len(VIEWS), 576, elevation_deg=elevation, radius=framing_radius(),
                          azimuths_deg=np.array(list(VIEWS.values())))

@@ -438,7 +438,8 @@ def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
     his thighs), and the fit followed (here bends of 24 / 15 deg, the ankles 6 cm behind the hips; in
     the protocol's 768 px photo 28 / 20 deg and 9 cm). The stance term
     of a photo of a person standing still keeps the knees within a few degrees of straight and the
-    feet below the hips (here 11 / 10 deg and 0.4 cm)."""
+    feet below the hips (here 7 / 5 deg and 1 cm; 11 / 10 deg with the term's free zones of 10 deg
+    and 5 cm before 2026-11-27)."""
     from humanvdm_core.body.fit import observe_frames
 
     rgba, cam = _scan_photo("renderpeople_rp_eric_rigged_001", 576)
@@ -449,7 +450,7 @@ def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
         bends = _knee_bends_deg(c)
         feet = float(c[[15, 16], 2].mean() - c[[11, 12], 2].mean())  # + = in front of the hips
         if still:
-            assert max(bends) < 12.0 and abs(feet) < 0.06, (bends, feet)
+            assert max(bends) < 8.0 and abs(feet) < 0.03, (bends, feet)
         else:  # without it the knees bend and the feet trail (so this test can tell)
             assert max(bends) > 20.0 and feet < -0.04, (bends, feet)
 

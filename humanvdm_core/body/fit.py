@@ -174,8 +174,9 @@ TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (betwe
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
 STANCE_WEIGHT = 10.0  # default FitOptions.stance_weight
 SPINE_PRIOR_WEIGHT = 1.0  # default FitOptions.spine_prior_weight
-STANCE_KNEE_FREE_DEG = 10.0  # a knee bent less than this costs nothing ..
-STANCE_FEET_FREE = 0.05  # .. nor ankles this close (world units) to below the hips along the view
+STANCE_KNEE_FREE_DEG = 3.0  # a knee bent less than this costs nothing ..
+STANCE_FEET_FREE = 0.01  # .. nor ankles this close (world units) to below the hips along the view ..
+STANCE_FEET_UNIT = 0.05  # .. farther, the excess counts in units of this
 
 
 @dataclass
@@ -576,14 +577,14 @@ class _Problem:
         """A person standing still: each knee's bend (thigh vs shin of ``coco17``, world axes) beyond
         :data:`STANCE_KNEE_FREE_DEG`, in radians, squared; plus the ankles' centre's offset from the
         hips' along ``forward`` (the key camera's horizontal view direction) beyond
-        :data:`STANCE_FEET_FREE`, in units of it, squared."""
+        :data:`STANCE_FEET_FREE`, in units of :data:`STANCE_FEET_UNIT`, squared."""
         hips, knees, ankles = (coco17[list(j)] for j in zip(*LEGS, strict=True))  # (2, 3) each: left, right
         thighs, shins = knees - hips, ankles - knees
         bends = _unit_angle(thighs / thighs.norm(dim=-1, keepdim=True).clamp(min=1e-9),
                             shins / shins.norm(dim=-1, keepdim=True).clamp(min=1e-9))
         offset = ((ankles.mean(0) - hips.mean(0)) * forward).sum()
         return (torch.relu(bends - np.radians(STANCE_KNEE_FREE_DEG)).pow(2).sum()
-                + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_FREE).pow(2))
+                + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_UNIT).pow(2))
 
     def silhouette_terms(self, vertices: torch.Tensor, cover: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """The one-sided term (vertices inside the mask) and, with ``cover``, the contour-coverage term
