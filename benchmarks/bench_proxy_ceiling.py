@@ -49,13 +49,14 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.bench_pipeline import reframe, scores  # noqa: E402
+from benchmarks.bench_pipeline import ELEVATION, reframe, scores  # noqa: E402
+from benchmarks.bench_pipeline import VIEWS as PROTOCOL_VIEWS  # noqa: E402
 from benchmarks.bench_protocol import BANDS, SCANS, WHITE, YAW_DEG, find_scans  # noqa: E402
 from benchmarks.common import save_result  # noqa: E402
 
 EVAL = 512
 OUTLIER = 0.05  # metres a scan depth may differ from its 5x5 median and still count
-VIEWS = {"left": 90.0, "back": 180.0, "right": 270.0}
+VIEWS = {v: az for v, az in PROTOCOL_VIEWS.items() if v != "front"}  # the unseen ones
 REGIONS = {"head": [BANDS["head"]], "torso": [BANDS["torso"]], "legs": [BANDS["legs"]],
            "head+torso": [BANDS["head"], BANDS["torso"]], "torso+legs": [BANDS["torso"], BANDS["legs"]],
            "head+legs": [BANDS["head"], BANDS["legs"]], "all": [(0.0, 1.0)]}
@@ -130,7 +131,7 @@ def with_scan_depths(proxy, near: np.ndarray, far: np.ndarray, rows: list[tuple[
     mask_rows = np.nonzero((proxy.input_view.mask > 0.5).any(axis=1))[0]
     r = (v - mask_rows.min()) / max(1, np.ptp(mask_rows))
     scale = float(np.median(z[covered]) / np.median(target[covered]))
-    chosen = covered & np.isin(np.where(front, "f", "b"), list(sheets))
+    chosen = covered & np.where(front, "f" in sheets, "b" in sheets)
     chosen &= np.logical_or.reduce([(r >= a) & (r < b) for a, b in rows])
     local[chosen] *= (scale * target[chosen] / z[chosen])[:, None]
     return (local - w2c[:3, 3]) @ w2c[:3, :3]
@@ -147,7 +148,7 @@ def measure(folder: Path, photo_size: int, tmp: Path) -> dict:
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
 
     mesh = normalize_scan(load_scan(folder), yaw_deg=YAW_DEG.get(folder.name, 0.0))
-    photo_cam = orbit_cameras(1, photo_size, elevation_deg=10.0, radius=framing_radius(),
+    photo_cam = orbit_cameras(1, photo_size, elevation_deg=ELEVATION, radius=framing_radius(),
                               azimuths_deg=np.array([0.0]))
     rgba = render_views(mesh, photo_cam, WHITE).rgba[0]
     photo = tmp / f"{folder.name}.png"
