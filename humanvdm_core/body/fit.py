@@ -65,7 +65,10 @@ Contract:
     :data:`TORSO_TRUSTED_DEG` off upright on (a bow), and as upright within :data:`TORSO_NOISE_DEG`
     (between the two the lean it counts grows from 0 to the whole): MediaPipe leans the torso of
     people who stand upright 3-13 deg forward (synthetic renders at 10 deg elevation), and a real
-    photo's unknown camera height tilts it either way. A single photo of a seated person
+    photo's unknown camera height tilts it either way. In a single photo of a person not seated a
+    lean backwards counts as upright within :data:`TORSO_BACK_NOISE_DEG` and whole from
+    :data:`TORSO_BACK_TRUSTED_DEG` on: MediaPipe leans the torso behind arms crossed before the chest
+    12-14 deg back, and people standing seldom lean back (a seated one reclines). A single photo of a seated person
     (:func:`~humanvdm_core.body.landmarks.seated`: both thighs point at the camera, hiding the pelvis)
     also gets the spine term (``spine_prior_weight``): the squared axis-angle of the spine's fitted
     joints (:data:`SPINE_JOINTS`), so the pelvis sits under the torso line rather than rolled some 13 deg
@@ -171,6 +174,10 @@ UPRIGHT_WEIGHT = 20.0  # default FitOptions.upright_weight
 TORSO_FREE_DEG = 1.5  # a torso within this angle of the arc from upright to the detector's torso costs nothing
 TORSO_NOISE_DEG = 10.0  # the detector's torso this close to upright counts as upright ...
 TORSO_TRUSTED_DEG = 20.0  # ... and this far from it or more counts whole (between: a linear ramp)
+# the same for a lean backwards in a single photo of a person not seated (MediaPipe leans the torso behind
+# arms crossed before the chest 12-14 deg back; people standing seldom lean back, a seated one reclines)
+TORSO_BACK_NOISE_DEG = 15.0
+TORSO_BACK_TRUSTED_DEG = 25.0
 SPINE_BONE = BONES.index(((11, 12), (5, 6)))  # hip centre -> shoulder centre
 STANCE_WEIGHT = 10.0  # default FitOptions.stance_weight
 SPINE_PRIOR_WEIGHT = 1.0  # default FitOptions.spine_prior_weight
@@ -340,12 +347,19 @@ def _unit_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.acos((a * b).sum(-1).clamp(-1 + 1e-6, 1 - 1e-6))
 
 
-def trusted_lean(seen: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+def trusted_lean(seen: torch.Tensor, up: torch.Tensor, front: torch.Tensor | None = None) -> torch.Tensor:
     """The detector's torso directions ``seen`` (F, 3, unit) turned towards ``up`` (3,) in their own vertical
     plane: an angle to ``up`` within :data:`TORSO_NOISE_DEG` becomes 0, one of :data:`TORSO_TRUSTED_DEG`
-    or more stays, and one between grows linearly from 0 to the whole."""
+    or more stays, and one between grows linearly from 0 to the whole. Given the person's ``front`` (3,),
+    horizontal and unit, a lean away from it (backwards) has :data:`TORSO_BACK_NOISE_DEG` and
+    :data:`TORSO_BACK_TRUSTED_DEG` instead."""
     angle = _unit_angle(seen, up[None])  # (F,)
-    noise, trusted = np.radians(TORSO_NOISE_DEG), np.radians(TORSO_TRUSTED_DEG)
+    noise = torch.full_like(angle, np.radians(TORSO_NOISE_DEG))
+    trusted = torch.full_like(angle, np.radians(TORSO_TRUSTED_DEG))
+    if front is not None:
+        back = (seen @ front) < 0
+        noise = torch.where(back, np.radians(TORSO_BACK_NOISE_DEG), noise)
+        trusted = torch.where(back, np.radians(TORSO_BACK_TRUSTED_DEG), trusted)
     kept = torch.where(angle >= trusted, angle, (angle - noise).clamp(min=0.0) * trusted / (trusted - noise))
     side = seen - (seen @ up)[:, None] * up[None]
     side = side / side.norm(dim=-1, keepdim=True).clamp(min=1e-9)
@@ -452,6 +466,15 @@ class _Problem:
             for f, o in enumerate(observations):
                 self.raw_kp[f] = raise_seated_knees(self.raw_kp[f], o.confidences, o.world_keypoints, ups[f])
         self.reach_past = options.arm_reach_past_keypoints and single
+        # a single photo of a person not seated: the person's front (horizontal, world), towards the camera
+        # (away from it for a photo from behind), so trusted_lean tells a lean backwards
+        self.front = None
+        if single and not self.seated:
+            key = next(f for f, o in enumerate(observations) if o.has_keypoints)
+            towards = cams.c2w[key][:3, 3] * np.array([1.0, 0.0, 1.0])
+            if np.linalg.norm(towards) > 1e-9:
+                towards = towards / np.linalg.norm(towards) * (-1.0 if options.facing_away else 1.0)
+                self.front = torch.as_tensor(towards, dtype=dt)
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)
         self.bone_end = torch.as_tensor(end, dtype=dt)
@@ -483,7 +506,7 @@ class _Problem:
         # then trusted_lean; +Y for a frame without 3D landmarks
         up = torch.tensor([0.0, 1.0, 0.0], dtype=dt)
         seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
-        self.torso_seen = torch.where(self.bone_conf[:, SPINE_BONE, None] > 0, trusted_lean(seen, up), up)
+        self.torso_seen = torch.where(self.bone_conf[:, SPINE_BONE, None] > 0, trusted_lean(seen, up, self.front), up)
 
     def _observed_bones(self, world: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit bone directions (B, 3) of 3D landmarks (17, 3) and their weights (B,): the confidence
