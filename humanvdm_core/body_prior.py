@@ -35,7 +35,8 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
    azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
    directions, the mask one-sided so clothing never stretches the body, the torso leaning no further
-   than the landmarks show (a lean of theirs under 10 deg counts as upright), an arm held out to the
+   than the landmarks show (a lean of theirs under 10 deg counts as upright, under 15 deg backwards when the
+   person is not seated), an arm held out to the
    side kept in the body's plane, a hand the photo shows on the head touching it, a person standing
    still kept on straight legs with the feet below the hips). An arm whose 2D keypoints the detector's
    own in-plane 3D landmarks contradict (far shorter: :func:`humanvdm_core.body.landmarks.arms_read_short`,
