@@ -68,9 +68,9 @@ Contract:
     photo's unknown camera height tilts it either way. In a single photo of a person not seated a
     lean backwards counts as upright within :data:`TORSO_BACK_NOISE_DEG` and whole from
     :data:`TORSO_BACK_TRUSTED_DEG` on: MediaPipe leans the torso behind arms crossed before the chest
-    12-14 deg back, and people standing seldom lean back (a seated one reclines). A single photo of a seated person
-    (:func:`~humanvdm_core.body.landmarks.seated`: both thighs point at the camera, hiding the pelvis)
-    also gets the spine term (``spine_prior_weight``): the squared axis-angle of the spine's fitted
+    12-14 deg back, and people standing seldom lean back (a seated one reclines). A single photo of a
+    seated person (:func:`~humanvdm_core.body.landmarks.seated`: both thighs point at the camera, hiding
+    the pelvis) also gets the spine term (``spine_prior_weight``): the squared axis-angle of the spine's fitted
     joints (:data:`SPINE_JOINTS`), so the pelvis sits under the torso line rather than rolled some 13 deg
     forward under a spine bent 27 deg back (a slouch pushing the seat out from under the torso), and
     its 2D knees are first raised (:func:`~humanvdm_core.body.landmarks.raise_seated_knees`,
