@@ -75,8 +75,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    back faces away (outward normals).
 8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``): the photo on the
    front, its silhouette band refilled from inside; on the back (the unseen side) per body part and
-   row the median colour of what the photo shows of that part, without prints, logos or held objects,
-   hands in their own colour and the head's back in the hair's (:mod:`humanvdm_core.proxy_colours`).
+   row the median colour of what the photo shows of that part, without prints, logos, held objects or
+   the skin of arms held before it, hands in their own colour and the head's back in the hair's
+   (:mod:`humanvdm_core.proxy_colours`).
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.

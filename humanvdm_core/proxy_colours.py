@@ -16,7 +16,10 @@ Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; on
   own hem decides, not the body's waist line; a torso row of the neckline (from the base of the neck
   to :data:`NECKLINE_DEPTH` below the shoulders' top) that shows clothing beside skin of the face's
   colour (:func:`face_colour`, :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median
-  only, since a top covers more of the back than of the front; hands keep their own colour; a thick
+  only, since a top covers more of the back than of the front; skin of the face's colour within
+  :data:`ARM_SKIN_REACH` of the fitted arms and hands (a forearm held before the torso, wider in the
+  photo than the fitted one) is theirs, not the torso's or the legs', so crossed arms leave no band of
+  skin on the back; hands keep their own colour; a thick
   region outside the body (a held object, a hat, a coat's flare) takes its own median per row, not the
   nearest part's;
 * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
@@ -42,6 +45,7 @@ PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
+ARM_SKIN_REACH = 0.03  # skin within this fraction of the frame of the fitted arms and hands is theirs (see below)
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
 NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
@@ -163,9 +167,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
     objects narrower than half the part are not carried over (on the torso, nor a wider print a few
-    rows tall: :func:`without_print_runs`); with ``front_side`` / ``back_side`` (the
-    body's side per pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the
-    torso and the legs share one median per row where both the nearest and the farthest surface are
+    rows tall: :func:`without_print_runs`); with ``skin_colour`` the skin within :data:`ARM_SKIN_REACH` of
+    the fitted arms and hands (an arm held before the torso, wider in the photo than the fitted one) is
+    not the torso's or the legs' either, unless that leaves them less than half of what they show; with
+    ``front_side`` / ``back_side`` (the body's side per pixel, +1 left, -1 right) each arm and leg takes
+    the medians of its own side; the torso and the legs share one median per row where both the nearest and the farthest surface are
     one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
     the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
     With ``skin_colour`` (the face's), a torso row of the neckline (from the torso's top, the base of the
@@ -213,13 +219,29 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         regions = [labels == i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= LOOSE_OWN_MIN * person.sum()]
     kept_apart = np.logical_or.reduce(regions) if regions else np.zeros_like(person)
 
+    # the photo's skin within ARM_SKIN_REACH of the fitted arms and hands is theirs where the fitted arm is
+    # thinner than the photo's (crossed forearms, hands clasped before the torso): no source of the trunk's
+    # colours (its back would show a band of the arms' skin), unless that leaves the trunk less than half
+    # of what it shows (a bare chest)
+    arm_skin = np.zeros_like(person)
+    if skin_colour is not None:
+        skin = person & skin_like(photo, skin_colour)
+        limbs = person & np.isin(front_part, [PARTS.index("arms"), PARTS.index("hands")])
+        near = cv2.distanceTransform((~limbs).astype(np.uint8), cv2.DIST_L2, 5) <= ARM_SKIN_REACH * size
+        arm_skin = skin & near & (front_part != PARTS.index("head"))
+
     def shown(select: np.ndarray) -> np.ndarray:
         rest = select & ~kept_apart
         return rest if rest.sum() >= 4 else select
 
+    def trunk_shown(select: np.ndarray) -> np.ndarray:
+        rest = shown(select)
+        own = rest & ~arm_skin
+        return own if own.sum() >= 0.5 * rest.sum() and own.sum() >= 4 else rest
+
     for p in range(len(PARTS)):
         want = back_part == p
-        source = shown(person & (front_part == p))
+        source = (trunk_shown if PARTS[p] == "torso" else shown)(person & (front_part == p))
         if not want.any() or source.sum() < 4:
             continue
         if PARTS[p] == "head" and head_colour is not None:
@@ -243,7 +265,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
     # not the body's waist line: one median per row over the torso and the legs together
     trunk = [PARTS.index("torso"), PARTS.index("legs")]
-    source = shown(person & np.isin(front_part, trunk))
+    source = trunk_shown(person & np.isin(front_part, trunk))
     same = np.isin(front_part, trunk + [PARTS.index("arms"), PARTS.index("hands")]) & np.isin(back_part, trunk)
     if source.sum() >= 4 and same.any():
         per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,

@@ -178,6 +178,34 @@ def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
     assert np.allclose(out[75, 50], skin, atol=0.05)  # skin all across the front: skin at the back
 
 
+def test_crossed_forearms_leave_no_band_of_skin_on_the_back(monkeypatch):
+    """A red shirt (sleeves from row 10) with a forearm across it below the neckline's rows: the photo's
+    skin at rows 36-50, columns 16-84, the fitted forearm (part ``arms``) thinner and shorter, rows 39-47,
+    columns 20-80. Above and below the fitted forearm the torso is seen mostly in the forearm's skin, so
+    without ARM_SKIN_REACH (0, the test checks it) the back's torso there takes the skin's colour; with it
+    that skin is the arm's and the back is the shirt in every row of the forearm. A bare chest (skin across
+    the torso, the same arm) keeps skin at the back."""
+    import humanvdm_core.proxy_colours as colours
+
+    size = 100
+    shirt, skin = np.array((0.8, 0.1, 0.1), np.float32), np.array((0.85, 0.62, 0.5), np.float32)
+    photo = np.zeros((size, size, 3), np.float32)
+    photo[:] = shirt
+    photo[36:51, 16:85] = skin
+    mask = np.ones((size, size), np.float32)
+    part = np.full((size, size), PARTS.index("torso"))
+    part[10:, :10] = part[10:, 90:] = PARTS.index("arms")  # the sleeves from the shoulders' top (row 10)
+    part[39:48, 20:81] = PARTS.index("arms")
+    back = np.full((size, size), PARTS.index("torso"))
+    out = unseen_side_colours(photo, mask, part, back, None, skin_colour=skin)
+    assert all(np.allclose(out[y, 50], shirt, atol=0.05) for y in range(34, 53)), out[34:53, 50]
+    bare = np.broadcast_to(skin, photo.shape).copy()
+    assert np.allclose(unseen_side_colours(bare, mask, part, back, None, skin_colour=skin)[38, 50], skin, atol=0.05)
+    monkeypatch.setattr(colours, "ARM_SKIN_REACH", 0.0)
+    before = unseen_side_colours(photo, mask, part, back, None, skin_colour=skin)
+    assert np.allclose(before[38, 50], skin, atol=0.05) and np.allclose(before[48, 50], skin, atol=0.05)
+
+
 def test_smooth_hands_flattens_the_fingers_relief_and_leaves_the_rest():
     """A hand (rows 40-60) whose fitted depth has a +-3 cm finger relief from pixel to pixel, on a flat
     torso: after smoothing, the relief inside the hand is under a third of what it was, the hand's mean
