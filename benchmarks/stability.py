@@ -64,6 +64,7 @@ def synthetic_specs() -> dict:
         "hand_to_face": SubjectSpec(pose="hand-to-face", seed=7),
         "hands_on_head": SubjectSpec(pose="hands-on-head", seed=11),
         "hands_clasped": SubjectSpec(pose="hands-clasped", seed=5),
+        "arms_crossed": SubjectSpec(pose="arms-crossed", seed=3),
     }
 
 
@@ -97,6 +98,8 @@ CASES: tuple[Case, ...] = (
          note="both hands resting on the crown, the elbows out to the sides"),
     Case("hands_clasped", "hand-hand contact", "synthetic:hands_clasped", ("iou",),
          note="the hands held together before the lower belly"),
+    Case("arms_crossed", "arms crossed before the chest", "synthetic:arms_crossed", ("iou",),
+         note="each hand across the midline before the lower chest; MediaPipe leans the torso behind 13 deg back"),
     Case("long_coat", "long coat", "synthetic:long_coat", ("iou",),
          note="a camel coat from the shoulders to mid-calf over dark trousers"),
     Case("child", "child proportions", "synthetic:child", ("iou",)),
