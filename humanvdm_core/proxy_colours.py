@@ -18,8 +18,8 @@ Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; on
   colour (:func:`face_colour`, :data:`NECKLINE_SHARE`: a collar, a V-neck) takes the clothing's median
   only, since a top covers more of the back than of the front; skin of the face's colour within
   :data:`ARM_SKIN_REACH` of the fitted arms and hands (a forearm held before the torso, wider in the
-  photo than the fitted one) is theirs, not the torso's or the legs', so crossed arms leave no band of
-  skin on the back; hands keep their own colour; a thick
+  photo than the fitted one) is theirs, no source of the torso's colours (nor of those it shares with the
+  legs), so crossed arms leave no band of skin on the back; hands keep their own colour; a thick
   region outside the body (a held object, a hat, a coat's flare) takes its own median per row, not the
   nearest part's;
 * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
@@ -169,10 +169,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     objects narrower than half the part are not carried over (on the torso, nor a wider print a few
     rows tall: :func:`without_print_runs`); with ``skin_colour`` the skin within :data:`ARM_SKIN_REACH` of
     the fitted arms and hands (an arm held before the torso, wider in the photo than the fitted one) is
-    not the torso's or the legs' either, unless that leaves them less than half of what they show; with
-    ``front_side`` / ``back_side`` (the body's side per pixel, +1 left, -1 right) each arm and leg takes
-    the medians of its own side; the torso and the legs share one median per row where both the nearest and the farthest surface are
-    one of them (the garment's hem, not the body's waist, divides them); hands keep their own colour,
+    no source of the torso's colours, nor of the torso's and the legs' shared ones (below), unless that
+    leaves less than half of what they show; with ``front_side`` / ``back_side`` (the body's side per
+    pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the torso and the legs
+    share one median per row where both the nearest and the farthest surface are one of them (the
+    garment's hem, not the body's waist, divides them); hands keep their own colour,
     the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
     With ``skin_colour`` (the face's), a torso row of the neckline (from the torso's top, the base of the
     neck, to :data:`NECKLINE_DEPTH` of the person's height below the shoulders' top, the highest arm
