@@ -366,6 +366,12 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor, front: torch.Tensor | Non
     return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
 
 
+def horizontal_view(cams: Cameras, index: int) -> np.ndarray:
+    """(3,) the unit horizontal direction camera ``index`` of ``cams`` looks along (world axes, +Y up)."""
+    forward = cams.c2w[index][:3, 2] * np.array([1.0, 0.0, 1.0])
+    return forward / max(float(np.linalg.norm(forward)), 1e-9)
+
+
 def _swap_pairs(groups: Sequence[bool], *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     """Copies of per-keypoint ``arrays`` (17, ...) with the left/right pairs of the flagged groups exchanged."""
     out = tuple(a.copy() for a in arrays)
@@ -471,10 +477,8 @@ class _Problem:
         self.front = None
         if single and not self.seated:
             key = next(f for f, o in enumerate(observations) if o.has_keypoints)
-            towards = cams.c2w[key][:3, 3] * np.array([1.0, 0.0, 1.0])
-            if np.linalg.norm(towards) > 1e-9:
-                towards = towards / np.linalg.norm(towards) * (-1.0 if options.facing_away else 1.0)
-                self.front = torch.as_tensor(towards, dtype=dt)
+            self.front = torch.as_tensor(horizontal_view(cams, key) * (1.0 if options.facing_away else -1.0),
+                                         dtype=dt)
         start, end = _bone_matrices()
         self.bone_start = torch.as_tensor(start, dtype=dt)
         self.bone_end = torch.as_tensor(end, dtype=dt)
@@ -779,8 +783,7 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
     stance_forward = None
     if n_views == 1 and options.stance_weight > 0 and standing_still(
             problem.raw_kp[key], problem.raw_conf[key], observations[key].world_keypoints, observations[key].mask):
-        forward = problem.cams.c2w[key][:3, 2] * np.array([1.0, 0.0, 1.0])
-        stance_forward = torch.as_tensor(forward / max(float(np.linalg.norm(forward)), 1e-9), dtype=model.dtype)
+        stance_forward = torch.as_tensor(horizontal_view(problem.cams, key), dtype=model.dtype)
         lg.debug("standing still: stance term on")
 
     # phase 2: pose and shape too
