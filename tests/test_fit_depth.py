@@ -627,12 +627,14 @@ def test_arms_read_short_tells_a_detector_contradicting_itself_from_foreshorteni
 
 
 @pytest.mark.slow
-def test_an_armoured_figure_whose_arms_the_detector_reads_short_keeps_them_out_to_the_side():
+def test_an_armoured_figure_keeps_its_arms_out_to_the_side_and_its_head_over_the_shoulders():
     """The three.js Soldier (a faceless armoured game character in a T-pose, fixture scan) as the
     protocol's 768 px photo: MediaPipe's 2D right wrist lands half way along the forearm (0.54 of the
     length its 3D landmarks imply) and the fit swung that forearm 44 deg backwards to match, a beam
     from the side. Redrawn along the 3D landmarks, it stays within 25 deg of the image plane, and the
-    run says what it guessed."""
+    run says what it guessed. Its hood hides the neck (the 2D ears 12.6 cm above the shoulders, Eric's
+    15.9): the fit tilted the head 7.5 cm towards the camera to shorten it; the stance term of a
+    person standing still keeps the ears within a few centimetres of the shoulders (here about 1)."""
     import tempfile
     from pathlib import Path
 
@@ -651,6 +653,28 @@ def test_an_armoured_figure_whose_arms_the_detector_reads_short_keeps_them_out_t
         assert out_of_plane < 25.0, (elbow, out_of_plane)  # the right forearm was 44 deg out before
     assert any("soldier.png: the pose model's 2D right arm is much shorter than its 3D landmarks show" in w
                for w in proxy.warnings), proxy.warnings
+    ears_forward = float(c[[3, 4], 2].mean() - c[[5, 6], 2].mean())  # the camera looks along -Z
+    assert abs(ears_forward) < 0.045, ears_forward  # 0.075 without the head's part of the stance term
+
+
+def test_the_stance_term_holds_the_head_over_the_shoulders_only_when_asked():
+    """_Problem.stance_term on hand-made joints (straight legs, the feet below the hips): the ears'
+    centre 7 cm before the shoulders costs with ``head`` and nothing without; 3 cm before costs
+    nothing either way."""
+    from humanvdm_core.body.fit import STANCE_HEAD_FREE, _Problem
+
+    c = torch.zeros(17, 3, dtype=torch.float64)
+    c[5], c[6] = torch.tensor([0.2, 1.45, 0.0]), torch.tensor([-0.2, 1.45, 0.0])  # shoulders
+    c[11], c[12] = torch.tensor([0.1, 0.95, 0.0]), torch.tensor([-0.1, 0.95, 0.0])  # hips
+    c[13], c[14] = c[11] - torch.tensor([0.0, 0.45, 0.0]), c[12] - torch.tensor([0.0, 0.45, 0.0])  # knees
+    c[15], c[16] = c[13] - torch.tensor([0.0, 0.45, 0.0]), c[14] - torch.tensor([0.0, 0.45, 0.0])  # ankles
+    forward = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    for ahead, costs in ((0.07, True), (0.03, False)):
+        c[3], c[4] = torch.tensor([0.07, 1.6, ahead]), torch.tensor([-0.07, 1.6, ahead])  # ears
+        assert float(_Problem.stance_term(None, c, forward)) == 0.0
+        with_head = float(_Problem.stance_term(None, c, forward, head=True))
+        assert (with_head > 0.0) == costs, (ahead, with_head)
+    assert STANCE_HEAD_FREE < 0.07
 
 
 def test_onto_the_head_moves_only_wrists_on_the_head():
