@@ -294,7 +294,8 @@ def test_trusted_lean_counts_a_small_lean_backwards_as_upright():
 def test_a_bow_the_detector_sees_is_kept(photo):
     """A person bowing 27 deg forward stays bowed (fitted 23 deg, the detector's torso 25): the torso
     term pulls only towards the arc from upright to what the detector sees (a pull to upright alone
-    fitted 3 deg)."""
+    fitted 3 deg), and the stance term's head part, which holds an upright person's head over the
+    shoulders, leaves a bowing torso's head alone (applied to it too, 10.5 deg)."""
     obs, cam, truth, _ = photo("bow")
     assert _lean_deg(truth) < -20.0  # the pose is what we meant
     c = _fit(obs, cam).output.coco17[0].numpy().astype(np.float64)

@@ -82,13 +82,15 @@ Contract:
     cost, squared. MediaPipe bends the knees of people who stand straight (its 3D knees 17-20 deg on
     every standing render; on real people in trousers its 2D shins come out a fifth short, so the
     2D keypoints alone bend them too) and the fit put their feet 0.1-0.2 m behind the hips. From the
-    second half of phase 2 on, the ears' centre more than :data:`STANCE_HEAD_FREE` before or behind the
-    shoulders' costs too: where the photo's neck is short (a hood, a helmet, a high collar, raised
-    shoulders hide it) the fit tilted the head towards the camera to foreshorten it (the three.js
+    second half of phase 2 on, if the fitted torso is then within :data:`STANCE_HEAD_UPRIGHT_DEG` of
+    upright, the ears' centre more than :data:`STANCE_HEAD_FREE` before or behind the shoulders' (along
+    the torso's forward) costs too: where the photo's neck is short (a hood, a helmet, a high collar,
+    raised shoulders hide it) the fit tilted the head towards the camera to foreshorten it (the three.js
     Soldier's ears 7.5 cm before its shoulders; on the synthetic subjects the truth's stand 2-4 cm before
     them). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
     a bun, a helmet: 2.4-3.5 cm before the shoulders, near the truth's) back to 0; once the head has
-    settled, such heads are left alone.
+    settled, such heads are left alone. A bow carries the head forward with the chest: a bowing torso
+    is left to its head.
 
 - The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
   :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
@@ -191,7 +193,8 @@ SPINE_PRIOR_WEIGHT = 1.0  # default FitOptions.spine_prior_weight
 STANCE_KNEE_FREE_DEG = 3.0  # a knee bent less than this costs nothing ..
 STANCE_FEET_FREE = 0.01  # .. nor ankles this close (world units) to below the hips along the view ..
 STANCE_FEET_UNIT = 0.05  # .. farther, the excess counts in units of this (the head's too) ..
-STANCE_HEAD_FREE = 0.04  # .. nor the ears' centre this close to above the shoulders' (second half of phase 2)
+STANCE_HEAD_FREE = 0.04  # .. nor the ears' centre this close to above the shoulders' (second half of phase 2, ..
+STANCE_HEAD_UPRIGHT_DEG = 10.0  # .. a torso this close to upright then)
 
 
 @dataclass
@@ -372,6 +375,12 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor, front: torch.Tensor | Non
     side = seen - (seen @ up)[:, None] * up[None]
     side = side / side.norm(dim=-1, keepdim=True).clamp(min=1e-9)
     return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
+
+
+def _spine_from_upright_deg(coco17: torch.Tensor) -> float:
+    """The angle in degrees between the hip centre -> shoulder centre line of ``coco17`` (17, 3) and +Y."""
+    spine = (coco17[5] + coco17[6] - coco17[11] - coco17[12]) / 2
+    return math.degrees(float(torch.arccos((spine[1] / spine.norm().clamp(min=1e-9)).clamp(-1.0, 1.0))))
 
 
 def horizontal_view(cams: Cameras, index: int) -> np.ndarray:
@@ -613,8 +622,9 @@ class _Problem:
         :data:`STANCE_KNEE_FREE_DEG`, in radians, squared; plus the ankles' centre's offset from the
         hips' along ``forward`` (the key camera's horizontal view direction) beyond
         :data:`STANCE_FEET_FREE`, in units of :data:`STANCE_FEET_UNIT`, squared; with ``head``, plus
-        the ears' centre's offset from the shoulders' along ``forward`` beyond :data:`STANCE_HEAD_FREE`,
-        in the same units, squared."""
+        the ears' centre's offset from the shoulders' along the torso's forward (``forward`` made
+        perpendicular to the hip centre -> shoulder centre line) beyond :data:`STANCE_HEAD_FREE`, in
+        the same units, squared."""
         hips, knees, ankles = (coco17[list(j)] for j in zip(*LEGS, strict=True))  # (2, 3) each: left, right
         thighs, shins = knees - hips, ankles - knees
         bends = _unit_angle(thighs / thighs.norm(dim=-1, keepdim=True).clamp(min=1e-9),
@@ -622,8 +632,12 @@ class _Problem:
         offset = ((ankles.mean(0) - hips.mean(0)) * forward).sum()
         term = (torch.relu(bends - np.radians(STANCE_KNEE_FREE_DEG)).pow(2).sum()
                 + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_UNIT).pow(2))
-        if head:
-            ears = ((coco17[3] + coco17[4] - coco17[5] - coco17[6]) / 2 * forward).sum()
+        if head:  # along the torso's own forward: a bow carries the head with it
+            spine = (coco17[5] + coco17[6] - coco17[11] - coco17[12]) / 2  # hip centre -> shoulder centre
+            spine = spine / spine.norm().clamp(min=1e-9)
+            ahead = forward - (forward * spine).sum() * spine
+            ahead = ahead / ahead.norm().clamp(min=1e-9)
+            ears = ((coco17[3] + coco17[4] - coco17[5] - coco17[6]) / 2 * ahead).sum()
             term = term + (torch.relu(ears.abs() - STANCE_HEAD_FREE) / STANCE_FEET_UNIT).pow(2)
         return term
 
@@ -794,7 +808,7 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
         lg.debug("phase 1b: bone-direction loss %.4f", history[-1])
 
     # a single photo of a person standing still: knees straight, feet below the hips (the key camera's view)
-    stance_forward = None
+    stance_forward, head = None, False
     if n_views == 1 and options.stance_weight > 0 and standing_still(
             problem.raw_kp[key], problem.raw_conf[key], observations[key].world_keypoints, observations[key].mask):
         stance_forward = torch.as_tensor(horizontal_view(problem.cams, key), dtype=model.dtype)
@@ -823,8 +837,9 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
         if upright > 0:
             loss = loss + upright * problem.torso_term(out.coco17[0])
         if stance_forward is not None:
-            loss = loss + options.stance_weight * problem.stance_term(out.coco17[0], stance_forward,
-                                                                      head=step >= n2 // 2)
+            if step == n2 // 2:  # the head joins once the torso has settled, if upright (a bow carries the head)
+                head = _spine_from_upright_deg(out.coco17[0].detach()) < STANCE_HEAD_UPRIGHT_DEG
+            loss = loss + options.stance_weight * problem.stance_term(out.coco17[0], stance_forward, head=head)
         loss = loss + options.shape_prior_weight * (params.shape - default_shape).pow(2).sum() / 0.25
         loss = loss + scale_prior()
         loss.backward()
