@@ -295,7 +295,8 @@ def test_a_bow_the_detector_sees_is_kept(photo):
     """A person bowing 27 deg forward stays bowed (fitted 23 deg, the detector's torso 25): the torso
     term pulls only towards the arc from upright to what the detector sees (a pull to upright alone
     fitted 3 deg), and the stance term's head part, which holds an upright person's head over the
-    shoulders, leaves a bowing torso's head alone (applied to it too, 10.5 deg)."""
+    shoulders, leaves a bowing torso's head alone (applied to it too: 19.4 deg; along the world's horizontal
+    rather than the torso's forward, 10.5)."""
     obs, cam, truth, _ = photo("bow")
     assert _lean_deg(truth) < -20.0  # the pose is what we meant
     c = _fit(obs, cam).output.coco17[0].numpy().astype(np.float64)
@@ -635,7 +636,7 @@ def test_an_armoured_figure_keeps_its_arms_out_to_the_side_and_its_head_over_the
     from the side. Redrawn along the 3D landmarks, it stays within 25 deg of the image plane, and the
     run says what it guessed. Its hood hides the neck (the 2D ears 12.6 cm above the shoulders, Eric's
     15.9): the fit tilted the head 7.5 cm towards the camera to shorten it; the stance term of a
-    person standing still keeps the ears within a few centimetres of the shoulders (here about 1)."""
+    person standing still keeps the ears within a few centimetres of the shoulders (here within one)."""
     import tempfile
     from pathlib import Path
 
