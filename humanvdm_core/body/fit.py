@@ -377,10 +377,15 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor, front: torch.Tensor | Non
     return torch.cos(kept)[:, None] * up[None] + torch.sin(kept)[:, None] * side
 
 
-def _spine_from_upright_deg(coco17: torch.Tensor) -> float:
-    """The angle in degrees between the hip centre -> shoulder centre line of ``coco17`` (17, 3) and +Y."""
+def _spine(coco17: torch.Tensor) -> torch.Tensor:
+    """(3,) the unit hip centre -> shoulder centre direction of ``coco17`` (17, 3)."""
     spine = (coco17[5] + coco17[6] - coco17[11] - coco17[12]) / 2
-    return math.degrees(float(torch.arccos((spine[1] / spine.norm().clamp(min=1e-9)).clamp(-1.0, 1.0))))
+    return spine / spine.norm().clamp(min=1e-9)
+
+
+def _spine_from_upright_deg(coco17: torch.Tensor) -> float:
+    """The angle in degrees between :func:`_spine` of ``coco17`` and +Y."""
+    return math.degrees(float(torch.arccos(_spine(coco17)[1].clamp(-1.0, 1.0))))
 
 
 def horizontal_view(cams: Cameras, index: int) -> np.ndarray:
@@ -633,8 +638,7 @@ class _Problem:
         term = (torch.relu(bends - np.radians(STANCE_KNEE_FREE_DEG)).pow(2).sum()
                 + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_UNIT).pow(2))
         if head:  # along the torso's own forward: a bow carries the head with it
-            spine = (coco17[5] + coco17[6] - coco17[11] - coco17[12]) / 2  # hip centre -> shoulder centre
-            spine = spine / spine.norm().clamp(min=1e-9)
+            spine = _spine(coco17)
             ahead = forward - (forward * spine).sum() * spine
             ahead = ahead / ahead.norm().clamp(min=1e-9)
             ears = ((coco17[3] + coco17[4] - coco17[5] - coco17[6]) / 2 * ahead).sum()
@@ -807,7 +811,8 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
             history.append(float(loss.detach()))
         lg.debug("phase 1b: bone-direction loss %.4f", history[-1])
 
-    # a single photo of a person standing still: knees straight, feet below the hips (the key camera's view)
+    # a single photo of a person standing still: knees straight, feet below the hips (the key camera's view),
+    # an upright one's head over the shoulders
     stance_forward, head = None, False
     if n_views == 1 and options.stance_weight > 0 and standing_still(
             problem.raw_kp[key], problem.raw_conf[key], observations[key].world_keypoints, observations[key].mask):
