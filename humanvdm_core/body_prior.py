@@ -561,8 +561,9 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
                         "at the body's own proportions")
     obs = FrameObservation(0, keypoints, view.confidences, fit_mask.copy(), list(view.warnings),
                            world_keypoints=view.world_keypoints, unseen=view.unseen)
-    fit = fit_body(model, front_cam, [obs], FitOptions(iterations=iterations, seed=seed, facing_away=facing.away),
-                   logger=lg)
+    options = FitOptions(iterations=iterations, seed=seed, facing_away=facing.away,
+                         head_over_shoulders=not facing.bowed)
+    fit = fit_body(model, front_cam, [obs], options, logger=lg)
     vertices = fit.output.vertices[0].numpy().astype(np.float64)
     coco17 = fit.output.coco17[0].numpy().astype(np.float64)
     faces = model.faces.numpy().astype(np.int64)

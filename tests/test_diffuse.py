@@ -267,6 +267,20 @@ def test_a_binder_held_before_the_body_is_said_and_hanging_arms_are_not(tmp_path
     assert not any("forearm" in w for w in sith.warnings), sith.warnings
 
 
+def test_the_faces_of_people_looking_ahead_read_upright(fixtures_dir):
+    """The face mesh's pitch of the three fixture photos' faces (real people looking at the camera, from
+    a little above): 0-10 deg, none bowed, so a photo of one standing still holds the head over the
+    shoulders (a head bowed to read reads beyond BOWED_DEG: test_fit_depth)."""
+    from humanvdm_core.body_prior import prepare_input_view
+    from humanvdm_core.perception.facing import BOWED_DEG, estimate_facing
+
+    for name in ("pifu_ryota.png", "pshuman_3930.png", "sith_014.png"):
+        view = prepare_input_view(fixtures_dir / "photos" / name, 576)
+        facing = estimate_facing(view.rgba[..., :3], view.keypoints, view.confidences, view.world_keypoints)
+        assert facing.pitch_deg is not None and -5.0 < facing.pitch_deg < 12.0, (name, facing.pitch_deg)
+        assert not facing.bowed and BOWED_DEG > 12.0
+
+
 def test_centring_moves_the_middle_onto_the_axis_and_keeps_the_view():
     """Points off the orbit's axis (a seated person's knees in front of the hips): after
     :func:`centring_transform` the middle of their box lies on the axis, and the input camera sees

@@ -90,7 +90,8 @@ Contract:
     them). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
     a bun, a helmet: 2.4-3.5 cm before the shoulders, near the truth's) back to 0; once the head has
     settled, such heads are left alone. A bow carries the head forward with the chest: a bowing torso
-    is left to its head.
+    is left to its head, and so is a head the photo's face shows bowed (``head_over_shoulders`` off:
+    :attr:`~humanvdm_core.perception.facing.Facing.bowed`).
 
 - The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
   :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
@@ -237,6 +238,8 @@ class FitOptions:
     facing_shoulders: bool = True
     # a single photo of a person standing still (standing_still): knees straight, feet below the hips
     stance_weight: float = STANCE_WEIGHT
+    # ... and, an upright one, the head over the shoulders (off for a photo whose face is bowed)
+    head_over_shoulders: bool = True
     # a single photo of a seated person (landmarks.seated): the spine's fitted joints (SPINE_JOINTS) held
     # near the rest pose ...
     spine_prior_weight: float = SPINE_PRIOR_WEIGHT
@@ -842,8 +845,8 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
         if upright > 0:
             loss = loss + upright * problem.torso_term(out.coco17[0])
         if stance_forward is not None:
-            if step == n2 // 2:  # the head joins once the torso has settled, if upright (a bow carries the head)
-                head = _spine_from_upright_deg(out.coco17[0].detach()) < STANCE_HEAD_UPRIGHT_DEG
+            if step == n2 // 2 and options.head_over_shoulders:  # the head joins once the torso has settled,
+                head = _spine_from_upright_deg(out.coco17[0].detach()) < STANCE_HEAD_UPRIGHT_DEG  # if upright
             loss = loss + options.stance_weight * problem.stance_term(out.coco17[0], stance_forward, head=head)
         loss = loss + options.shape_prior_weight * (params.shape - default_shape).pow(2).sum() / 0.25
         loss = loss + scale_prior()

@@ -18,6 +18,11 @@ its pixels, and optionally MediaPipe's 3D world keypoints in the camera's axes):
   :data:`AWAY_THRESHOLD`; a detected face always means facing the camera.
 - :class:`Facing` reports the decision, the votes, and ``ambiguous`` (no face found but the other
   votes disagree or are weak: the decision is a guess, the caller should say so).
+- A face found is also pitched: MediaPipe's bundled face mesh on the same head box, the forehead
+  (landmark 10) -> chin (152) line's tilt out of the image plane, positive with the forehead nearer
+  the camera (``pitch_deg``; ``None`` without a face or a mesh). ``bowed``: beyond :data:`BOWED_DEG`.
+  Upright real faces photographed from 10 deg above read -1 to +12 deg; a head bowed to read or to
+  look at a phone reads more.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import numpy as np
 
 FACE_SCORE = 0.5
 AWAY_THRESHOLD = -0.5
+BOWED_DEG = 15.0  # a face pitched this far towards the camera (forehead nearer than the chin) is bowed
 _HEAD = (0, 1, 2, 3, 4)  # COCO nose, eyes, ears
 
 
@@ -37,13 +43,16 @@ class Facing:
     away: bool  # the person faces away from the camera (the photo shows their back)
     ambiguous: bool  # no face found and the pose evidence is weak or contradictory
     votes: dict[str, float] = field(default_factory=dict)
+    pitch_deg: float | None = None  # the face's tilt towards the camera (forehead nearer), from the face mesh
+
+    @property
+    def bowed(self) -> bool:
+        """The face is pitched beyond :data:`BOWED_DEG` towards the camera: the head is bowed."""
+        return self.pitch_deg is not None and self.pitch_deg > BOWED_DEG
 
 
-def _face_found(rgb: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray) -> bool:
-    """Whether MediaPipe's full-range face detector finds a face around the head keypoints."""
-    os.environ.setdefault("GLOG_minloglevel", "2")
-    from mediapipe.python.solutions import face_detection
-
+def _head_crop(rgb: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8: the box of a shoulder width around the head keypoints (the whole image without them)."""
     h, w = rgb.shape[:2]
     head = keypoints[list(_HEAD)][confidences[list(_HEAD)] > 0.3]
     shoulders = keypoints[[5, 6]]
@@ -55,17 +64,44 @@ def _face_found(rgb: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray)
         crop = rgb[y0:y1, x0:x1] if x1 - x0 > 8 and y1 - y0 > 8 else rgb
     else:
         crop = rgb
-    image = np.ascontiguousarray((np.clip(crop, 0.0, 1.0) * 255 + 0.5).astype(np.uint8))
+    return np.ascontiguousarray((np.clip(crop, 0.0, 1.0) * 255 + 0.5).astype(np.uint8))
+
+
+def _face_found(image: np.ndarray) -> bool:
+    """Whether MediaPipe's full-range face detector finds a face in the head crop ``image``."""
+    os.environ.setdefault("GLOG_minloglevel", "2")
+    from mediapipe.python.solutions import face_detection
+
     with face_detection.FaceDetection(model_selection=1, min_detection_confidence=FACE_SCORE) as detector:
         result = detector.process(image)
     return bool(result.detections)
+
+
+def face_pitch_deg(image: np.ndarray) -> float | None:
+    """The pitch (module docstring) of the face MediaPipe's face mesh finds in the head crop ``image``
+    (upscaled to 256 px first when smaller), or ``None``."""
+    os.environ.setdefault("GLOG_minloglevel", "2")
+    import cv2
+    from mediapipe.python.solutions import face_mesh
+
+    if min(image.shape[:2]) < 192:
+        image = cv2.resize(image, (256, 256), interpolation=cv2.INTER_CUBIC)
+    with face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1) as mesh:
+        result = mesh.process(image)
+    if not result.multi_face_landmarks:
+        return None
+    marks = result.multi_face_landmarks[0].landmark
+    w = image.shape[1]
+    up = np.array([(marks[10].y - marks[152].y) * image.shape[0], (marks[10].z - marks[152].z) * w])  # chin -> forehead
+    return float(np.degrees(np.arctan2(-up[1], -up[0])))
 
 
 def estimate_facing(rgb: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
                     world_keypoints: np.ndarray | None = None) -> Facing:
     """Facing of the person (see the module docstring)."""
     votes: dict[str, float] = {}
-    face = _face_found(rgb, keypoints, confidences)
+    head = _head_crop(rgb, keypoints, confidences)
+    face = _face_found(head)
     votes["face"] = 1.0 if face else -0.5
     torso_h = float(np.linalg.norm(keypoints[[5, 6]].mean(0) - keypoints[[11, 12]].mean(0)))
     order = []
@@ -79,4 +115,4 @@ def estimate_facing(rgb: np.ndarray, keypoints: np.ndarray, confidences: np.ndar
     away = (not face) and total < AWAY_THRESHOLD
     pose_votes = [v for k, v in votes.items() if k != "face"]
     ambiguous = (not face) and (not away or any(v > 0.2 for v in pose_votes) or not pose_votes)
-    return Facing(away=away, ambiguous=ambiguous, votes=votes)
+    return Facing(away=away, ambiguous=ambiguous, votes=votes, pitch_deg=face_pitch_deg(head) if face else None)
