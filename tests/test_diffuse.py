@@ -269,7 +269,7 @@ def test_a_binder_held_before_the_body_is_said_and_hanging_arms_are_not(tmp_path
 
 def test_the_faces_of_people_looking_ahead_read_upright(fixtures_dir):
     """The face mesh's pitch of the three fixture photos' faces (real people looking at the camera, from
-    a little above): 0-10 deg, none bowed, so a photo of one standing still holds the head over the
+    a little above): -2 to 10 deg, none bowed, so a photo of one standing still holds the head over the
     shoulders (a head bowed to read reads beyond BOWED_DEG: test_fit_depth)."""
     from humanvdm_core.body_prior import prepare_input_view
     from humanvdm_core.perception.facing import BOWED_DEG, estimate_facing

@@ -21,7 +21,7 @@ its pixels, and optionally MediaPipe's 3D world keypoints in the camera's axes):
 - A face found is also pitched: MediaPipe's bundled face mesh on the same head box, the forehead
   (landmark 10) -> chin (152) line's tilt out of the image plane, positive with the forehead nearer
   the camera (``pitch_deg``; ``None`` without a face or a mesh). ``bowed``: beyond :data:`BOWED_DEG`.
-  Upright real faces photographed from 10 deg above read -1 to +12 deg; a head bowed to read or to
+  Upright real faces photographed from 10 deg above read -2 to +13 deg; a head bowed to read or to
   look at a phone reads more.
 """
 
@@ -79,13 +79,15 @@ def _face_found(image: np.ndarray) -> bool:
 
 def face_pitch_deg(image: np.ndarray) -> float | None:
     """The pitch (module docstring) of the face MediaPipe's face mesh finds in the head crop ``image``
-    (upscaled to 256 px first when smaller), or ``None``."""
+    (its shorter side upscaled to 256 px first when under 192), or ``None``."""
     os.environ.setdefault("GLOG_minloglevel", "2")
     import cv2
     from mediapipe.python.solutions import face_mesh
 
-    if min(image.shape[:2]) < 192:
-        image = cv2.resize(image, (256, 256), interpolation=cv2.INTER_CUBIC)
+    h, w = image.shape[:2]
+    if min(h, w) < 192:
+        k = 256.0 / min(h, w)
+        image = cv2.resize(image, (round(w * k), round(h * k)), interpolation=cv2.INTER_CUBIC)
     with face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1) as mesh:
         result = mesh.process(image)
     if not result.multi_face_landmarks:
