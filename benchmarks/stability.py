@@ -65,6 +65,7 @@ def synthetic_specs() -> dict:
         "hands_on_head": SubjectSpec(pose="hands-on-head", seed=11),
         "hands_clasped": SubjectSpec(pose="hands-clasped", seed=5),
         "arms_crossed": SubjectSpec(pose="arms-crossed", seed=3),
+        "head_bowed": SubjectSpec(pose="head-bowed", seed=3),
     }
 
 
@@ -100,6 +101,9 @@ CASES: tuple[Case, ...] = (
          note="the hands held together before the lower belly"),
     Case("arms_crossed", "arms crossed before the chest", "synthetic:arms_crossed", ("iou",),
          note="each hand across the midline before the lower chest; MediaPipe leans the torso behind 13 deg back"),
+    Case("head_bowed", "a head bowed (reading)", "synthetic:head_bowed", ("iou",),
+         note="standing still, the neck bent 45 deg forward: the face reads bowed, so the head is not held "
+         "over the shoulders"),
     Case("long_coat", "long coat", "synthetic:long_coat", ("iou",),
          note="a camel coat from the shoulders to mid-calf over dark trousers"),
     Case("child", "child proportions", "synthetic:child", ("iou",)),

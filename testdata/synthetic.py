@@ -129,9 +129,10 @@ WORLD_CONVENTION = ("metres; Y up; facing +Z; person's left at +X; lowest vertex
 #   pelvis joint and just before the lower belly: the hands cross there, one over the other;
 # - arms-crossed: two-bone IK puts each wrist across the midline before the lower chest, 30 cm above the
 #   pelvis joint, so the hand reaches the other arm's elbow (the right forearm over the left, 3 cm
-#   nearer the camera and 3 cm higher), the elbows down beside the ribs.
+#   nearer the camera and 3 cm higher), the elbows down beside the ribs;
+# - head-bowed: standing, the neck bent 45 degrees forward (reading, looking at a phone).
 POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised", "seated", "hand-to-face",
-                          "hands-on-head", "hands-clasped", "arms-crossed")
+                          "hands-on-head", "hands-clasped", "arms-crossed", "head-bowed")
 # the poses random_specs cycles through (fixed, so its subjects stay those of the recorded benchmarks)
 RANDOM_POSES: tuple[str, ...] = POSES[:6]
 
@@ -160,7 +161,7 @@ HAIR_STYLES = ("short", "long")
 DRESSES = ("none", "skirt", "long", "coat")
 DRESS_PATTERNS = ("solid", "stripes", "checks", "dots")
 GARMENT_POSES: tuple[str, ...] = ("standing", "a-pose", "walking", "hands-on-hips", "arms-raised",  # dress poses
-                                  "hand-to-face", "hands-on-head", "hands-clasped", "arms-crossed")
+                                  "hand-to-face", "hands-on-head", "hands-clasped", "arms-crossed", "head-bowed")
 GARMENT_TEXTURE = "garments.png"
 _PALETTE: tuple[RGB, ...] = (
     (200, 30, 40), (30, 80, 180), (240, 200, 40), (30, 140, 70), (240, 240, 235), (25, 25, 30),
@@ -478,6 +479,11 @@ def _pose_aims(name: str, joint: dict[str, np.ndarray], body_half_width: float,
                                joint["root"][2] + body_half_width * 0.9 + 0.05 + 0.03 * over])
             reach(side, target, np.array([s * 0.6, -1.0, 0.2]))
             leg(s, side, _deg_dir(0.0, 4.0), _deg_dir(0.0, 4.0))
+    elif name == "head-bowed":
+        for s, side in sides:
+            hang(s, side)
+            leg(s, side, _deg_dir(0.0, 3.0), _deg_dir(0.0, 3.0))
+        aims["neck01"] = ("head", np.array([0.0, np.cos(np.radians(45.0)), np.sin(np.radians(45.0))]))
     elif name == "seated":
         for s, side in sides:
             leg(s, side, _deg_dir(90.0, 6.0), _deg_dir(6.0, 3.0))

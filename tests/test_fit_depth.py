@@ -675,19 +675,9 @@ def test_a_head_bowed_before_the_shoulders_stays_bowed(tmp_path, monkeypatch):
     from humanvdm_core.perception import facing
     from humanvdm_core.render import render_views
     from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
-    from testdata import synthetic
     from testdata.synthetic import SubjectSpec, make_subject
 
-    original = synthetic.pose_params
-
-    def posed(model, name, shape):
-        params = original(model, "standing", shape)
-        _aim(model, params, "neck01", "head", [0.0, np.cos(np.radians(45.0)), np.sin(np.radians(45.0))])
-        return params
-
-    monkeypatch.setattr(synthetic, "pose_params", posed)
-    obj = make_subject(SubjectSpec(pose="standing", seed=3), tmp_path / "bowed", texture_size=256)
-    monkeypatch.setattr(synthetic, "pose_params", original)
+    obj = make_subject(SubjectSpec(pose="head-bowed", seed=3), tmp_path / "bowed", texture_size=256)
     cam = orbit_cameras(1, 576, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
     photo = tmp_path / "bowed.png"
     write_png(photo, render_views(normalize_scan(load_scan(obj)), cam, (1.0, 1.0, 1.0)).rgba[0])

@@ -191,6 +191,20 @@ def test_arms_crossed_fold_across_the_chest(subjects):
     assert kp(truth, "right_wrist")[2] > kp(truth, "left_wrist")[2]  # the right forearm over the left
 
 
+def test_a_bowed_head_hangs_before_the_shoulders(subjects):
+    _, bowed = subjects["head-bowed"]
+    _, stand = subjects["standing"]
+
+    def ears_ahead(truth) -> float:
+        return float(0.5 * (kp(truth, "left_ear") + kp(truth, "right_ear"))[2]
+                     - 0.5 * (kp(truth, "left_shoulder") + kp(truth, "right_shoulder"))[2])
+
+    assert ears_ahead(bowed) > ears_ahead(stand) + 0.04  # the head before the shoulders
+    assert kp(bowed, "nose")[1] < kp(stand, "nose")[1] - 0.03  # and lower: looking down
+    for side in ("left", "right"):  # the rest as standing
+        np.testing.assert_allclose(kp(bowed, f"{side}_wrist"), kp(stand, f"{side}_wrist"), atol=1e-6)
+
+
 def test_standing_and_a_pose_arms(subjects):
     _, stand = subjects["standing"]
     _, apose = subjects["a-pose"]
