@@ -705,8 +705,8 @@ def test_the_stance_term_holds_the_head_over_the_shoulders_only_when_asked():
     forward = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
     for ahead, costs in ((0.07, True), (0.03, False)):
         c[3], c[4] = torch.tensor([0.07, 1.6, ahead]), torch.tensor([-0.07, 1.6, ahead])  # ears
-        assert float(_Problem.stance_term(None, c, forward)) == 0.0
-        with_head = float(_Problem.stance_term(None, c, forward, head=True))
+        assert float(_Problem.stance_term(c, forward)) == 0.0
+        with_head = float(_Problem.stance_term(c, forward, head=True))
         assert (with_head > 0.0) == costs, (ahead, with_head)
     assert STANCE_HEAD_FREE < 0.07
 

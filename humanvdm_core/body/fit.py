@@ -625,7 +625,8 @@ class _Problem:
         outside = 0.5 * (_unit_angle(d, up) + _unit_angle(d[None], seen) - _unit_angle(up[None], seen))
         return torch.relu(outside - np.radians(TORSO_FREE_DEG)).pow(2).mean()
 
-    def stance_term(self, coco17: torch.Tensor, forward: torch.Tensor, head: bool = False) -> torch.Tensor:
+    @staticmethod
+    def stance_term(coco17: torch.Tensor, forward: torch.Tensor, head: bool = False) -> torch.Tensor:
         """A person standing still: each knee's bend (thigh vs shin of ``coco17``, world axes) beyond
         :data:`STANCE_KNEE_FREE_DEG`, in radians, squared; plus the ankles' centre's offset from the
         hips' along ``forward`` (the key camera's horizontal view direction) beyond
