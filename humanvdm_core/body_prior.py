@@ -38,7 +38,8 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    than the landmarks show (a lean of theirs under 10 deg counts as upright, under 15 deg backwards when the
    person is not seated), an arm held out to the
    side kept in the body's plane, a hand the photo shows on the head touching it, a person standing
-   still kept on straight legs with the feet below the hips). An arm whose 2D keypoints the detector's
+   still kept on straight legs with the feet below the hips and, upright and its face not bowed
+   (:attr:`humanvdm_core.perception.facing.Facing.bowed`), the head over the shoulders). An arm whose 2D keypoints the detector's
    own in-plane 3D landmarks contradict (far shorter: :func:`humanvdm_core.body.landmarks.arms_read_short`,
    armour or a drawn figure) is first redrawn along those landmarks (:func:`~humanvdm_core.body.landmarks.rebuild_arms`),
    with a warning.
