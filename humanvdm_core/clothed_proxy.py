@@ -235,6 +235,23 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
             "back_side": side_map(far), "trunk_front": trunk_front, "trunk_back": trunk_back}
 
 
+def grid_faces(index: np.ndarray) -> np.ndarray:
+    """(F, 3) triangles over a grid of vertex indices (H, W; -1 where there is none): two per 2x2 block of
+    vertices, one for a block with three, wound to face the camera (normals towards -z)."""
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    tris = []
+    for t0, t1, t2, cond in (
+        (a, c, b, (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)),
+        (b, c, d, (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)),
+        (a, c, b, (a >= 0) & (b >= 0) & (c >= 0) & (d < 0)),
+        (b, c, d, (a < 0) & (b >= 0) & (c >= 0) & (d >= 0)),
+        (a, d, b, (a >= 0) & (b >= 0) & (c < 0) & (d >= 0)),
+        (a, c, d, (a >= 0) & (b < 0) & (c >= 0) & (d >= 0)),
+    ):
+        tris.append(np.stack([t0[cond], t1[cond], t2[cond]], axis=1))
+    return np.concatenate(tris)
+
+
 # ----------------------------------------------------------------------------- thickness
 
 def row_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -582,13 +599,12 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     if head_colour is not None:
         mid, half = hang_hair(mid, half, domain & ~border, maps, rgb, mask, cam_g, np.asarray(head_colour, np.float32))
 
-    # vertices: front sheet on every domain pixel, back sheet on interior pixels (border shared in position)
+    # vertices: a front and a back sheet on every domain pixel, the back's in the same order after the front's
+    # (the border's meet in position, each with its own texture coordinates)
     rows, cols = np.nonzero(domain)
     n = len(rows)
     index_front = np.full((g, g), -1, np.int64)
     index_front[rows, cols] = np.arange(n)
-    index_back = np.full((g, g), -1, np.int64)
-    index_back[rows, cols] = np.arange(n, 2 * n)  # border vertices are duplicated (own texture coordinates)
 
     K_inv = np.linalg.inv(cam_g.K[0])
     c2w = cam_g.c2w[0]
@@ -602,22 +618,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     d_mid, d_half = mid[rows, cols], half[rows, cols]
     verts = np.concatenate([lift(d_mid - d_half), lift(d_mid + d_half)])
 
-    # faces: two triangles per 2x2 block of domain pixels, one for a block with three
-    tris = []
-    a = index_front[:-1, :-1]
-    b = index_front[:-1, 1:]
-    c = index_front[1:, :-1]
-    d = index_front[1:, 1:]
-    for t0, t1, t2, cond in (
-        (a, c, b, (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)),
-        (b, c, d, (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)),
-        (a, c, b, (a >= 0) & (b >= 0) & (c >= 0) & (d < 0)),
-        (b, c, d, (a < 0) & (b >= 0) & (c >= 0) & (d >= 0)),
-        (a, d, b, (a >= 0) & (b >= 0) & (c < 0) & (d >= 0)),
-        (a, c, d, (a >= 0) & (b < 0) & (c >= 0) & (d >= 0)),
-    ):
-        tris.append(np.stack([t0[cond], t1[cond], t2[cond]], axis=1))
-    front_faces = np.concatenate(tris)  # wound to face the camera (normals towards -z)
+    front_faces = grid_faces(index_front)  # wound to face the camera (normals towards -z)
     back_faces = front_faces[:, ::-1] + n
     faces_out = np.concatenate([front_faces, back_faces])
 
