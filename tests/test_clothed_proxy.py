@@ -1132,3 +1132,20 @@ def test_a_print_wider_than_half_the_shirt_is_not_carried_to_the_back_and_stripe
         striped[y:y + 5, 36:64] = white
     out = unseen_side_colours(striped, mask, part, part, None)
     assert np.allclose(out[47, 50], white, atol=0.05), out[47, 50]  # a stripe's middle row
+
+
+def test_grid_faces_triangulate_every_block_of_three_or_four_and_face_the_camera():
+    """A 3x3 grid of vertices gives two triangles per 2x2 block (8); with its corner vertex gone, the
+    block keeps one triangle of its three (7); every triangle is wound the same way (towards -z, the
+    camera, with x right and y down)."""
+    from humanvdm_core.clothed_proxy import grid_faces
+
+    index = np.arange(9).reshape(3, 3)
+    assert len(grid_faces(index)) == 8
+    index[2, 2] = -1
+    faces = grid_faces(index)
+    assert len(faces) == 7 and not np.any(faces == -1)
+    xy = np.stack(np.meshgrid(np.arange(3.0), np.arange(3.0)), axis=-1).reshape(-1, 2)
+    a, b, c = (xy[faces[:, k]] for k in range(3))
+    cross = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    assert np.all(cross < 0) or np.all(cross > 0)
