@@ -1134,10 +1134,10 @@ def test_a_print_wider_than_half_the_shirt_is_not_carried_to_the_back_and_stripe
     assert np.allclose(out[47, 50], white, atol=0.05), out[47, 50]  # a stripe's middle row
 
 
-def test_grid_faces_triangulate_every_block_of_three_or_four_and_face_the_camera():
+def test_grid_faces_triangulate_every_block_of_three_or_four_all_wound_one_way():
     """A 3x3 grid of vertices gives two triangles per 2x2 block (8); with its corner vertex gone, the
-    block keeps one triangle of its three (7); every triangle is wound the same way (towards -z, the
-    camera, with x right and y down)."""
+    block keeps one triangle of its three (7); every triangle is wound the same way in the image (so the
+    sheets' faces all face the camera, or all face away)."""
     from humanvdm_core.clothed_proxy import grid_faces
 
     index = np.arange(9).reshape(3, 3)
