@@ -381,8 +381,8 @@ def trusted_lean(seen: torch.Tensor, up: torch.Tensor, front: torch.Tensor | Non
 
 
 def _spine(coco17: torch.Tensor) -> torch.Tensor:
-    """(3,) the unit hip centre -> shoulder centre direction of ``coco17`` (17, 3)."""
-    spine = (coco17[5] + coco17[6] - coco17[11] - coco17[12]) / 2
+    """(3,) the unit hip centre -> shoulder centre direction of ``coco17`` (17, 3): :data:`SPINE_BONE`."""
+    spine = (coco17[5] + coco17[6]) / 2 - (coco17[11] + coco17[12]) / 2
     return spine / spine.norm().clamp(min=1e-9)
 
 
@@ -618,8 +618,7 @@ class _Problem:
         the arc, beyond :data:`TORSO_FREE_DEG`, squared (radians); mean over the frames (a frame without
         3D landmarks has the arc +Y alone). A bow the detector sees costs nothing; a lean it does not
         see does."""
-        d = self.bone_end[SPINE_BONE] @ coco17 - self.bone_start[SPINE_BONE] @ coco17  # (3,)
-        d = d / d.norm().clamp(min=1e-9)
+        d = _spine(coco17)
         up = torch.tensor([0.0, 1.0, 0.0], dtype=d.dtype)
         seen = self.torso_seen
         outside = 0.5 * (_unit_angle(d, up) + _unit_angle(d[None], seen) - _unit_angle(up[None], seen))
