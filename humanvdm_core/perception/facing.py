@@ -93,8 +93,8 @@ def face_pitch_deg(image: np.ndarray) -> float | None:
     if not result.multi_face_landmarks:
         return None
     marks = result.multi_face_landmarks[0].landmark
-    w = image.shape[1]
-    up = np.array([(marks[10].y - marks[152].y) * image.shape[0], (marks[10].z - marks[152].z) * w])  # chin -> forehead
+    h, w = image.shape[:2]  # MediaPipe's z is in units of the image width, as x
+    up = np.array([(marks[10].y - marks[152].y) * h, (marks[10].z - marks[152].z) * w])  # chin -> forehead
     return float(np.degrees(np.arctan2(-up[1], -up[0])))
 
 
