@@ -31,7 +31,11 @@ SV3D ones first, so that gsplat's first-use compile, started beside this script,
   the training's seconds per step and its 30,000-step estimate, the Gaussian count and the training
   PSNR; the stages' logs and the turntable GIF are copied beside ``--out``, and with ``--keep-gaussians
   FILE`` the trained Gaussians (``gaussians.npz``'s arrays that render them, compressed) to FILE, for
-  ``bench_protocol --gaussians``.
+  ``bench_protocol --gaussians``. ``--work DIR`` keeps the stage section's scratch folder and reuses the
+interpolated frames already there; ``--until interpolate`` stops before training: so a first call
+upscales and interpolates while gsplat compiles, and a second call on the same machine trains only (the
+folder, and ``TORCH_EXTENSIONS_DIR``, must be paths git ignores there, or the next call's copy of the
+working tree removes them).
 
 Writes ``--out`` (default ``benchmarks/results/gpu.json``) with the device named.
 Run: ``python -m benchmarks.bench_gpu [--gsplat-ready /tmp/gsplat_ready] [--out F] [--smoke]``, or
@@ -324,22 +328,37 @@ def _stage(name: str, argv: list[str], log_path: Path) -> tuple[float, str]:
 
 
 def stage_section(orbit: Path, body: Path, iterations: int, out_dir: Path, smoke: bool,
-                  keep_gaussians: Path | None = None) -> dict:
-    """upscale -> interpolate -> splat-optimize (``full``) as the pipeline runs them; see the docstring."""
+                  keep_gaussians: Path | None = None, work: Path | None = None, until: str = "",
+                  before_training=None) -> dict:
+    """upscale -> interpolate -> splat-optimize (``full``) as the pipeline runs them; see the docstring.
+
+    ``work``: a kept scratch folder whose interpolated frames, when there, are reused (the stages before
+    training are then not run again); ``until="interpolate"`` stops before training; ``before_training()``
+    is called just before ``splat-optimize`` starts (the wait for gsplat's compile).
+    """
     import re
     import shutil
     import tempfile
 
-    work = Path(tempfile.mkdtemp(prefix="bench_gpu_stage_"))
+    keep_work = work is not None
+    work = Path(work) if keep_work else Path(tempfile.mkdtemp(prefix="bench_gpu_stage_"))
     preset = "tiny" if smoke else "full"
     out: dict = {"orbit": str(orbit), "preset": preset, "stages": {}}
     logs = out_dir / "gpu_stage_logs"
     logs.mkdir(parents=True, exist_ok=True)
-    out["stages"]["upscale_s"] = round(_stage("upscale", [
-        "--frames", str(orbit), "--out-frames", str(work / "up"), "--target-size", "128" if smoke else "1080"],
-        logs / "upscale.log")[0], 1)
-    out["stages"]["interpolate_s"] = round(_stage("interpolate", [
-        "--frames", str(work / "up"), "--out-frames", str(work / "interp")], logs / "interpolate.log")[0], 1)
+    if keep_work and (work / "interp" / "cameras.npz").exists():
+        out["stages"]["reused_frames"] = str(work / "interp")
+    else:
+        out["stages"]["upscale_s"] = round(_stage("upscale", [
+            "--frames", str(orbit), "--out-frames", str(work / "up"), "--target-size", "128" if smoke else "1080"],
+            logs / "upscale.log")[0], 1)
+        out["stages"]["interpolate_s"] = round(_stage("interpolate", [
+            "--frames", str(work / "up"), "--out-frames", str(work / "interp")], logs / "interpolate.log")[0], 1)
+    if until == "interpolate":
+        print("stage", out, flush=True)
+        return out
+    if before_training is not None:
+        before_training()
     argv = ["--frames", str(work / "interp"), "--body", str(body), "--orbit", str(orbit),
             "--out-gaussians", str(work / "gaussians"), "--preset", preset]
     if smoke:  # the tiny preset's UV map is the body file's, so that no body model is needed either
@@ -377,7 +396,8 @@ def stage_section(orbit: Path, body: Path, iterations: int, out_dir: Path, smoke
         with np.load(work / "gaussians" / "gaussians.npz") as g:
             keep = ("__schema__", "__schema_version__", "means", "quats", "scales", "opacities", "colors")
             np.savez_compressed(keep_gaussians, **{k: g[k] for k in keep})
-    shutil.rmtree(work, ignore_errors=True)
+    if not keep_work:
+        shutil.rmtree(work, ignore_errors=True)
     print("stage", out, flush=True)
     return out
 
@@ -395,6 +415,10 @@ def main() -> None:
     parser.add_argument("--body", type=Path, help="stage section: a fit-smpl body.npz with uv_resolution 569")
     parser.add_argument("--iterations", type=int, default=0, help="stage section: training steps (0: the preset's)")
     parser.add_argument("--keep-gaussians", type=Path, help="stage section: save the trained Gaussians here (.npz)")
+    parser.add_argument("--work", type=Path, help="stage section: a kept scratch folder; its interpolated frames, "
+                        "when there, are reused (a second call trains only)")
+    parser.add_argument("--until", choices=["", "interpolate"], default="",
+                        help="stage section: stop after interpolate (run while gsplat compiles)")
     args = parser.parse_args()
     if "stage" in args.sections.split(",") and not (args.orbit and args.body):
         parser.error("--sections stage needs --orbit and --body")
@@ -428,7 +452,11 @@ def main() -> None:
     run("sv3d", sv3d_section, dev, args.smoke)
     run("sv3d_orbit", sv3d_orbit_section, dev, args.smoke)
     backends = ["torch"]
-    if args.gsplat_ready:
+
+    def wait_for_gsplat() -> None:
+        """Wait for ``--gsplat-ready`` (once), then record whether gsplat's kernels load."""
+        if not args.gsplat_ready or "gsplat" in doc["result"]:
+            return
         t0 = time.perf_counter()
         while not Path(args.gsplat_ready).exists() and time.perf_counter() - t0 < args.wait:
             time.sleep(2)
@@ -447,10 +475,13 @@ def main() -> None:
         doc["result"]["gsplat"] = build
         print("gsplat", build, flush=True)
         save()
+
+    if {"rasterize", "train_step"} & set(sections):
+        wait_for_gsplat()
     run("rasterize", rasterize_section, dev, backends, args.smoke)
     run("train_step", train_section, dev, backends, args.smoke)
     run("stage", stage_section, args.orbit, args.body, args.iterations, Path(args.out).parent, args.smoke,
-        args.keep_gaussians)
+        args.keep_gaussians, args.work, args.until, wait_for_gsplat)
     print(f"wrote {args.out} in {doc['wall_s']} s", flush=True)
 
 
