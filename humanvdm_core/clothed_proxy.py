@@ -77,7 +77,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    front, its silhouette band refilled from inside; on the back (the unseen side) per body part and
    row the median colour of what the photo shows of that part, without prints, logos, held objects or
    the skin of arms held before it, hands in their own colour and the head's back in the hair's
-   (:mod:`humanvdm_core.proxy_colours`).
+   (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
+   at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
+   above, the back sheet lies lower than the front along each ray.
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -478,6 +480,37 @@ def horizontal_reach(camera: Cameras) -> np.ndarray:
     return np.maximum(rays @ forward, 1e-3)
 
 
+def unseen_rows(front: np.ndarray, back: np.ndarray, camera: Cameras, domain: np.ndarray) -> np.ndarray:
+    """(H, W) float: per pixel of ``camera`` (one camera), the image row (fractional, in pixels) of the
+    same column at which the near side, held vertical, stands at the world height (+Y up) of the far
+    side: the row whose colours the far side takes. ``front`` / ``back`` (H, W): the near and the far
+    camera depths per pixel. On a ray that points down, the far point lies lower in the world than the
+    near one (on a ray that points up, higher), so a hem, a belt or a hairline on the unseen side comes
+    from the photo's rows further down (up); equal depths (the silhouette) give the pixel's own row.
+    Only where the near side stands upright (its height changes faster than its distance down the
+    column: a torso, standing legs), not where it lies level (a seated person's lap, whose colours do
+    not go by height). The row stays within the pixel's vertical run of ``domain`` (H, W bool, the
+    footprint): below a hem with nothing under it in the photo (between the legs) a coat keeps its colour."""
+    w2c = np.asarray(camera.w2c[0], np.float64)
+    up = w2c[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    h, w = camera.height, camera.width
+    yy, xx = np.mgrid[0:h, 0:w]
+    rays = np.stack([xx + 0.5, yy + 0.5, np.ones((h, w))], axis=-1) @ np.linalg.inv(camera.K[0]).T
+    reach = horizontal_reach(camera)
+    slope = (rays @ up) / reach  # height over levelled distance: falls down each column
+    near = np.asarray(front, np.float64)
+    upright = np.abs(np.gradient(near * (rays @ up), axis=0)) > np.abs(np.gradient(near * reach, axis=0))
+    target = np.where(upright, slope * np.asarray(back, np.float64) / np.maximum(near, 1e-6), slope)
+    rows = np.arange(h, dtype=np.float64)
+    out = np.stack([np.interp(-target[:, c], -slope[:, c], rows) for c in range(w)], axis=1)
+    first, last = np.zeros((h, w)), np.full((h, w), h - 1.0)  # each pixel's vertical run of the domain
+    for r in range(1, h):
+        first[r] = np.where(domain[r] & domain[r - 1], first[r - 1], r)
+    for r in range(h - 2, -1, -1):
+        last[r] = np.where(domain[r] & domain[r + 1], last[r + 1], r)
+    return np.clip(out, first, last)
+
+
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
@@ -641,7 +674,16 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bs = np.where(bknown, bs, fs).astype(np.int64)
     loose_full = cv2.resize((domain & ~body).astype(np.uint8), (size, size),
                             interpolation=cv2.INTER_NEAREST).astype(bool)  # the mask outside the body
-    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile)
+    # each point of the unseen side takes its part's colours of the photo's row at its own world height (see
+    # unseen_rows): the height of the body's far surface where the body lies behind it; outside the body
+    # its own row (what lies there -- a coat's flare, a held object -- has a guessed volume, and its back
+    # would hang lower than its hem along the rays)
+    near_d = mid - half
+    far_d = np.maximum(np.where(body, np.minimum(mid + half, maps["back"]), near_d), near_d)
+    far_rows = cv2.resize(((unseen_rows(near_d, far_d, cam_g, domain) + 0.5) * to_full - 0.5).astype(np.float32),
+                          (size, size), interpolation=cv2.INTER_LINEAR)
+    back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile,
+                                   source_rows=far_rows)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = (cols + 0.5) * to_full / size
     v = 1.0 - (rows + 0.5) * to_full / size

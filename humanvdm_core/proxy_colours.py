@@ -21,7 +21,9 @@ Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; on
   photo than the fitted one) is theirs, no source of the torso's colours (nor of those it shares with the
   legs), so crossed arms leave no band of skin on the back; hands keep their own colour; a thick
   region outside the body (a held object, a hat, a coat's flare) takes its own median per row, not the
-  nearest part's;
+  nearest part's; "the same height" is the height in the world for the torso and the legs: seen from
+  above, the unseen side lies lower than the seen one along each ray, so its hem, belt or waistline comes
+  from the photo's rows that show that height (``source_rows``);
 * the head's back (part ``head`` behind what the photo shows as the head; behind a collar or a
   shoulder the neck takes the clothing's colour) is the hair colour sampled at the top of the head in
   the photo, a forehead showing there left out (:func:`hair_colour`), so no face appears on the back;
@@ -162,7 +164,8 @@ def without_print_runs(per_row: np.ndarray, shown: np.ndarray, height: int, band
 def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, back_part: np.ndarray,
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
                         back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
-                        loose: np.ndarray | None = None, profile: bool = False) -> np.ndarray:
+                        loose: np.ndarray | None = None, profile: bool = False,
+                        source_rows: np.ndarray | None = None) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -186,7 +189,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     ``profile`` (the photo shows the person from the side) the far side of the head is its near side
     mirrored, and the camera's rays cross the head's midplane, so one pixel shows both: wherever the head
     is both the nearest and the farthest surface it keeps the photo's own colours (the other cheek, ear
-    and hair), not ``head_colour`` over half a face."""
+    and hair), not ``head_colour`` over half a face. With ``source_rows`` (H, W float: per pixel the row at
+    which the photo shows the world height of the unseen side's point there,
+    :func:`humanvdm_core.clothed_proxy.unseen_rows`) the torso's and the legs' colours (a hem, a belt, a
+    waistline) and long hair come from that row (fractional: the two nearest blended), not the pixel's
+    own; the arms, the hands, the head and what lies outside the body keep their own rows."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
@@ -231,6 +238,17 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         near = cv2.distanceTransform((~limbs).astype(np.uint8), cv2.DIST_L2, 5) <= ARM_SKIN_REACH * size
         arm_skin = skin & near & (front_part != PARTS.index("head"))
 
+    def at_rows(per_row: np.ndarray, where: np.ndarray, part: int = PARTS.index("torso")) -> np.ndarray:
+        """``per_row`` (H, C) at the pixels ``where``: of each one's ``source_rows`` row for the torso and
+        the legs, else of its own row."""
+        ys, xs = np.nonzero(where)
+        if source_rows is None or PARTS[part] not in ("torso", "legs"):
+            return per_row[ys]
+        r = np.clip(source_rows[ys, xs], 0, size - 1)
+        lo = np.floor(r).astype(np.int64)
+        t = (r - lo)[:, None].astype(np.float32)
+        return per_row[lo] * (1 - t) + per_row[np.minimum(lo + 1, size - 1)] * t
+
     def shown(select: np.ndarray) -> np.ndarray:
         rest = select & ~kept_apart
         return rest if rest.sum() >= 4 else select
@@ -254,14 +272,14 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
             per_row = row_medians(photo, source, band, prefer, prefer_rows=neckline)
             if PARTS[p] == "torso":
                 per_row = without_print_runs(per_row, source.any(axis=1), height, band)
-            out[want] = np.broadcast_to(per_row[:, None, :], photo.shape)[want]
+            out[want] = at_rows(per_row, want, p)
             if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
                 # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
                 for side in (-1, 1):
                     own, own_source = want & (back_side == side), source & (front_side == side)
                     if own.any() and own_source.sum() >= 4:
                         per_row = row_medians(photo, own_source, band)
-                        out[own] = np.broadcast_to(per_row[:, None, :], photo.shape)[own]
+                        out[own] = at_rows(per_row, own, p)
     # where the torso or the legs are the farthest surface and the nearest one too (or an arm or a hand
     # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
     # not the body's waist line: one median per row over the torso and the legs together
@@ -272,12 +290,15 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,
                               prefer_rows=neckline)
         per_row = without_print_runs(per_row, source.any(axis=1), height, band)
-        out[same] = np.broadcast_to(per_row[:, None, :], photo.shape)[same]
+        out[same] = at_rows(per_row, same)
     for region in regions:
         per_row = row_medians(photo, region, band)
-        out[region] = np.broadcast_to(per_row[:, None, :], photo.shape)[region]
+        out[region] = per_row[np.nonzero(region)[0]]  # outside the body: its own rows (see source_rows)
     if head_colour is not None:
         hair = distinct_hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
+        if source_rows is not None:  # long hair hangs as far down the back as the photo shows it at the sides
+            r = np.clip(np.rint(source_rows), 0, size - 1).astype(np.int64)
+            hair = hair[r, np.arange(photo.shape[1])[None, :]]
         out[hair & (back_part != PARTS.index("hands"))] = head_colour
     if profile:
         mirrored = person & (front_part == head) & (back_part == head)
