@@ -420,6 +420,14 @@ def _tube(radius: float, length: float, top: tuple, tilt_deg: float = 0.0):
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
 
 
+def _silhouette(vertices: np.ndarray, faces: np.ndarray, camera) -> np.ndarray:
+    """(H, W) bool: the mesh's silhouette in ``camera`` (one camera)."""
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import TexturedMesh
+
+    return render_views(TexturedMesh(vertices, faces), camera, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+
+
 def _torso_on_legs(extra: tuple = ()):
     """A tube "torso" on two tube "legs" 6 cm apart, tilted 15 deg back (a single photo's leg depth is a
     guess), plus ``extra`` ((vertices, faces), joint name) pieces: ``(vertices, faces, weights, names)``,
@@ -444,17 +452,15 @@ def test_a_skirt_hangs_from_the_hips_not_along_the_legs(monkeypatch):
     from humanvdm_core import clothed_proxy
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import build_clothed_proxy, skirt_rows
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     v, f, w, names = _torso_on_legs()
     size = 128
     cams = orbit_cameras(2, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0, 90.0]))
     front = cams.subset([0])
-    body_mask = render_views(TexturedMesh(v, f), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    body_mask = _silhouette(v, f, front)
     sv, sf = _tube(0.35, 0.4, (0.0, 0.05, 0.0))
-    skirt_mask = render_views(TexturedMesh(sv, sf), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    skirt_mask = _silhouette(sv, sf, front)
     mask = (body_mask | skirt_mask).astype(np.float32)
     rgb = np.full((size, size, 3), 0.3, np.float32)
 
@@ -483,8 +489,6 @@ def test_a_skirt_is_one_cross_section_around_both_legs_and_shorts_are_no_skirt(m
     from humanvdm_core import clothed_proxy
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import build_clothed_proxy
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     v, f, w, names = _torso_on_legs()
@@ -494,7 +498,7 @@ def test_a_skirt_is_one_cross_section_around_both_legs_and_shorts_are_no_skirt(m
     def silhouette(*tubes) -> np.ndarray:
         out = np.zeros((size, size), bool)
         for tv, tf in tubes:
-            out |= render_views(TexturedMesh(tv, tf), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+            out |= _silhouette(tv, tf, front)
         return out
 
     found = []
@@ -519,8 +523,6 @@ def test_hands_hanging_at_a_skirts_sides_do_not_pinch_it():
 
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import build_clothed_proxy
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     hands = []
@@ -533,7 +535,7 @@ def test_hands_hanging_at_a_skirts_sides_do_not_pinch_it():
     front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
     mask = np.zeros((size, size), bool)
     for tv, tf in ((v, f), _tube(0.35, 0.4, (0.0, 0.05, 0.0))):
-        mask |= render_views(TexturedMesh(tv, tf), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+        mask |= _silhouette(tv, tf, front)
     rgb = np.full((size, size, 3), 0.3, np.float32)
     p = build_clothed_proxy(v, f, w, names, front, rgb, mask.astype(np.float32), grid=size).mesh.vertices
 
@@ -943,8 +945,6 @@ def test_a_garment_standing_out_at_both_sides_stands_as_far_out_in_front_and_beh
 
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import CLOTHING, build_clothed_proxy
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     v, f, w, names = _cylinder_body()
@@ -952,7 +952,7 @@ def test_a_garment_standing_out_at_both_sides_stands_as_far_out_in_front_and_beh
     w = np.stack([v[:, 1] < 0.6, v[:, 1] >= 0.6], axis=1).astype(np.float64)
     size, margin = 160, 0.05
     cam = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
-    body_mask = render_views(TexturedMesh(v, f), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    body_mask = _silhouette(v, f, cam)
     px = int(round(margin * cam.K[0, 0, 0] / 3.2))  # 5 cm at the body's distance
     wider = cv2.dilate(body_mask.astype(np.uint8), np.ones((1, 2 * px + 1), np.uint8)).astype(bool)
     if sides == 1:
@@ -980,14 +980,12 @@ def test_a_hat_brim_is_as_deep_as_it_is_wide_and_a_sleeve_is_not():
     sideways, the body's own cross-section elsewhere) stays as thin as it is tall."""
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import INFLATION, build_clothed_proxy
-    from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     v, f, w, names = _cylinder_body(max_edge=0.04)
     size, distance = 192, 3.2
     cam = orbit_cameras(1, size, 33.8, 0.0, distance, azimuths_deg=np.array([0.0]))
-    body_mask = render_views(TexturedMesh(v, f), cam, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    body_mask = _silhouette(v, f, cam)
     focal = float(cam.K[0, 0, 0])
     cx, cy = float(cam.K[0, 0, 2]), float(cam.K[0, 1, 2])
 
@@ -1194,15 +1192,14 @@ def test_a_skirt_keeps_its_own_colour_at_the_back_down_to_its_end():
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import build_clothed_proxy
     from humanvdm_core.render import render_views
-    from humanvdm_core.scans import TexturedMesh
 
     torch.set_num_threads(1)
     v, f, w, names = _torso_on_legs()
     size = 256
     cams = orbit_cameras(2, size, 33.8, 20.0, 3.2, azimuths_deg=np.array([0.0, 180.0]))
     front = cams.subset([0])
-    body = render_views(TexturedMesh(v, f), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
-    skirt = render_views(TexturedMesh(*_tube(0.35, 0.3, (0.0, 0.05, 0.0))), front, (0.0, 0.0, 0.0)).rgba[0, ..., 3] > 0.5
+    body = _silhouette(v, f, front)
+    skirt = _silhouette(*_tube(0.35, 0.3, (0.0, 0.05, 0.0)), front)
     rgb = np.empty((size, size, 3), np.float32)
     rgb[:] = (0.1, 0.1, 0.9)  # the legs
     rgb[skirt] = (0.1, 0.8, 0.1)
