@@ -465,6 +465,12 @@ def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: 
     return out
 
 
+def pixel_rays(camera: Cameras) -> np.ndarray:
+    """(H, W, 3): per pixel centre of ``camera`` (one camera), its ray in camera space at depth 1."""
+    yy, xx = np.mgrid[0:camera.height, 0:camera.width]
+    return np.stack([xx + 0.5, yy + 0.5, np.ones(xx.shape)], axis=-1) @ np.linalg.inv(camera.K[0]).T
+
+
 def horizontal_reach(camera: Cameras) -> np.ndarray:
     """(H, W): per pixel of ``camera`` (one camera), the horizontal distance in front of the camera (along
     its forward direction levelled in the world, whose up is +Y) of the point at camera depth 1 on the
@@ -474,10 +480,7 @@ def horizontal_reach(camera: Cameras) -> np.ndarray:
     up = w2c[:3, :3] @ np.array([0.0, 1.0, 0.0])
     forward = np.array([0.0, 0.0, 1.0]) - up[2] * up
     forward /= np.linalg.norm(forward)
-    h, w = camera.height, camera.width
-    yy, xx = np.mgrid[0:h, 0:w]
-    rays = np.stack([xx + 0.5, yy + 0.5, np.ones((h, w))], axis=-1) @ np.linalg.inv(camera.K[0]).T
-    return np.maximum(rays @ forward, 1e-3)
+    return np.maximum(pixel_rays(camera) @ forward, 1e-3)
 
 
 def unseen_rows(front: np.ndarray, back: np.ndarray, camera: Cameras, domain: np.ndarray) -> np.ndarray:
@@ -494,8 +497,7 @@ def unseen_rows(front: np.ndarray, back: np.ndarray, camera: Cameras, domain: np
     w2c = np.asarray(camera.w2c[0], np.float64)
     up = w2c[:3, :3] @ np.array([0.0, 1.0, 0.0])
     h, w = camera.height, camera.width
-    yy, xx = np.mgrid[0:h, 0:w]
-    rays = np.stack([xx + 0.5, yy + 0.5, np.ones((h, w))], axis=-1) @ np.linalg.inv(camera.K[0]).T
+    rays = pixel_rays(camera)
     reach = horizontal_reach(camera)
     slope = (rays @ up) / reach  # height over levelled distance: falls down each column
     near = np.asarray(front, np.float64)

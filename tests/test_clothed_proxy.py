@@ -1218,13 +1218,12 @@ def test_unseen_rows_follow_a_wall_in_height_and_leave_a_level_surface_alone():
     which the wall stands at that point's world height (lower rows: the far point lies lower); on a level
     surface (a seated person's lap) every pixel keeps its own row; no row leaves the footprint."""
     from humanvdm_core.cameras import orbit_cameras
-    from humanvdm_core.clothed_proxy import horizontal_reach, unseen_rows
+    from humanvdm_core.clothed_proxy import horizontal_reach, pixel_rays, unseen_rows
 
     cam = orbit_cameras(1, 120, 40.0, 20.0, 3.0, azimuths_deg=np.array([0.0]))
-    w2c, K = np.asarray(cam.w2c[0], np.float64), cam.K[0]
-    up = w2c[:3, :3] @ np.array([0.0, 1.0, 0.0])
-    yy, xx = np.mgrid[0:120, 0:120]
-    rays = np.stack([xx + 0.5, yy + 0.5, np.ones((120, 120))], axis=-1) @ np.linalg.inv(K).T
+    up = np.asarray(cam.w2c[0], np.float64)[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    yy = np.mgrid[0:120, 0:120][0]
+    rays = pixel_rays(cam)
     reach = horizontal_reach(cam)
     domain = np.zeros((120, 120), bool)
     domain[10:110, 30:90] = True
