@@ -51,6 +51,7 @@ ARM_SKIN_REACH = 0.03  # skin within this fraction of the frame of the fitted ar
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
 NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
+BY_HEIGHT = ("torso", "legs")  # parts whose unseen side takes the photo's colours at its own world height
 LOOSE_OWN_MIN = 0.005  # a region outside the body covering this share of the mask keeps its own colours at the back ...
 LOOSE_OWN_OPEN = 0.015  # ... once thinner parts than this fraction of the frame are cut off (a sliver of background)
 PRINT_RUN = (0.03, 0.1)  # rows (fraction of the person's height) a print wider than half the garment spans ...
@@ -238,11 +239,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         near = cv2.distanceTransform((~limbs).astype(np.uint8), cv2.DIST_L2, 5) <= ARM_SKIN_REACH * size
         arm_skin = skin & near & (front_part != PARTS.index("head"))
 
-    def at_rows(per_row: np.ndarray, where: np.ndarray, part: int = PARTS.index("torso")) -> np.ndarray:
-        """``per_row`` (H, C) at the pixels ``where``: of each one's ``source_rows`` row for the torso and
-        the legs, else of its own row."""
+    def at_rows(per_row: np.ndarray, where: np.ndarray, by_height: bool) -> np.ndarray:
+        """``per_row`` (H, C) at the pixels ``where``: of each one's ``source_rows`` row if ``by_height``
+        (the torso and the legs), else of its own row."""
         ys, xs = np.nonzero(where)
-        if source_rows is None or PARTS[part] not in ("torso", "legs"):
+        if source_rows is None or not by_height:
             return per_row[ys]
         r = np.clip(source_rows[ys, xs], 0, size - 1)
         lo = np.floor(r).astype(np.int64)
@@ -272,14 +273,14 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
             per_row = row_medians(photo, source, band, prefer, prefer_rows=neckline)
             if PARTS[p] == "torso":
                 per_row = without_print_runs(per_row, source.any(axis=1), height, band)
-            out[want] = at_rows(per_row, want, p)
+            out[want] = at_rows(per_row, want, PARTS[p] in BY_HEIGHT)
             if PARTS[p] in PAIRED and front_side is not None and back_side is not None:
                 # each arm (leg) from its own visible pixels: what one hand holds stays off the other arm
                 for side in (-1, 1):
                     own, own_source = want & (back_side == side), source & (front_side == side)
                     if own.any() and own_source.sum() >= 4:
                         per_row = row_medians(photo, own_source, band)
-                        out[own] = at_rows(per_row, own, p)
+                        out[own] = at_rows(per_row, own, PARTS[p] in BY_HEIGHT)
     # where the torso or the legs are the farthest surface and the nearest one too (or an arm or a hand
     # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
     # not the body's waist line: one median per row over the torso and the legs together
@@ -290,10 +291,10 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         per_row = row_medians(photo, source, band, source & clothed if clothed is not None else None,
                               prefer_rows=neckline)
         per_row = without_print_runs(per_row, source.any(axis=1), height, band)
-        out[same] = at_rows(per_row, same)
+        out[same] = at_rows(per_row, same, True)  # the torso and the legs
     for region in regions:
         per_row = row_medians(photo, region, band)
-        out[region] = per_row[np.nonzero(region)[0]]  # outside the body: its own rows (see source_rows)
+        out[region] = at_rows(per_row, region, False)  # outside the body: its own rows
     if head_colour is not None:
         hair = distinct_hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
         if source_rows is not None:  # long hair hangs as far down the back as the photo shows it at the sides
