@@ -12,7 +12,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    (``front``) and farthest (``back``) camera depth per pixel, and per pixel the body part
    (:data:`PARTS`, from the skinning weights) of the nearest and of the farthest surface.
 2. **Domain.** The person's mask (``mask > 0.5``, dilated by one grid pixel so the proxy covers the
-   whole silhouette) is the proxy's footprint: in the input view the proxy's silhouette is the mask.
+   whole silhouette) is the proxy's footprint; the vertices on its border move onto the mask's own
+   outline (:func:`rim_shift`): in the input view the proxy's silhouette is the mask, without a grid
+   pixel around it or the grid's staircase along a nearly vertical edge.
 3. **Arms in front.** Where an arm or a hand is the body's nearest surface, it is pulled back to at most
    :data:`ARM_REACH` in front of the nearest surface of the body without its arms (fading out over
    :data:`ARM_NEAR` from that body's silhouette, so an arm reaching out sideways keeps its depth): a
@@ -69,7 +71,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`; where
    the photo shows long hair, the back sheet behind the head and the neck moves back so the hair
    hangs plumb from the back of the head, :func:`hang_hair`), one
-   vertex per grid pixel of the footprint back-projected along its ray, two triangles per 2x2 block
+   vertex per grid pixel of the footprint back-projected along its ray (the border's through its point on
+   the mask's outline, step 2), two triangles per 2x2 block
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
@@ -126,6 +129,8 @@ HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is average
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
+RIM_SMOOTH = 0.75  # grid pixels (Gaussian sigma) over which the mask's outline is smoothed for the rim ...
+RIM_MAX_SHIFT = 1.0  # ... and the farthest (grid pixels) a rim vertex moves onto it
 
 
 @dataclass
@@ -513,6 +518,30 @@ def unseen_rows(front: np.ndarray, back: np.ndarray, camera: Cameras, domain: np
     return np.clip(out, first, last)
 
 
+def rim_shift(mask: np.ndarray, g: int, rim: np.ndarray) -> np.ndarray:
+    """(g, g, 2) the image-plane shift (x, y, in pixels of a ``g`` grid) that takes each ``rim`` pixel's
+    centre onto the outline of ``mask`` (size x size, person > 0.5): the zero of its signed distance
+    (positive inside), measured at full size, brought to the grid and smoothed over
+    :data:`RIM_SMOOTH` grid pixels, reached by one Newton step along its gradient and at most
+    :data:`RIM_MAX_SHIFT` long. Zero off ``rim`` and where the rim lies deeper inside the mask than
+    that (the frame's edge across a cropped person). The proxy's outline then follows the mask's, not
+    the grid's staircase (which a nearly vertical edge shows as notches every few pixels)."""
+    person = (mask > 0.5).astype(np.uint8)
+    size = mask.shape[0]
+    inside = cv2.distanceTransform(person, cv2.DIST_L2, 5)
+    outside = cv2.distanceTransform(1 - person, cv2.DIST_L2, 5)
+    signed = np.where(person > 0, inside - 0.5, 0.5 - outside).astype(np.float32) * (g / size)
+    signed = cv2.resize(signed, (g, g), interpolation=cv2.INTER_AREA) if g != size else signed
+    signed = cv2.GaussianBlur(signed, (0, 0), RIM_SMOOTH)
+    gy, gx = np.gradient(signed)
+    norm2 = np.maximum(gx * gx + gy * gy, 0.25)
+    step = -signed[..., None] * np.stack([gx, gy], axis=-1) / norm2[..., None]
+    length = np.linalg.norm(step, axis=-1, keepdims=True)
+    step = step * np.minimum(1.0, RIM_MAX_SHIFT / np.maximum(length, 1e-9))
+    keep = rim & (np.abs(signed) <= RIM_MAX_SHIFT + 0.5)
+    return np.where(keep[..., None], step, 0.0)
+
+
 def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weights: np.ndarray,
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
@@ -643,7 +672,9 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
 
     K_inv = np.linalg.inv(cam_g.K[0])
     c2w = cam_g.c2w[0]
-    pix = np.stack([cols + 0.5, rows + 0.5, np.ones(n)], axis=1)
+    shift = rim_shift(mask, g, border)[rows, cols]  # the rim onto the mask's outline, not the grid's staircase
+    px, py = cols + 0.5 + shift[:, 0], rows + 0.5 + shift[:, 1]
+    pix = np.stack([px, py, np.ones(n)], axis=1)
     rays = pix @ K_inv.T  # camera-space points at z = 1
 
     def lift(depth: np.ndarray) -> np.ndarray:
@@ -687,8 +718,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile,
                                    source_rows=far_rows)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
-    u = (cols + 0.5) * to_full / size
-    v = 1.0 - (rows + 0.5) * to_full / size
+    u = px * to_full / size
+    v = 1.0 - py * to_full / size
     uvs = np.concatenate([np.stack([0.5 * u, v], 1), np.stack([0.5 + 0.5 * u, v], 1)]).astype(np.float32)
 
     # skinning: nearest body vertex

@@ -352,6 +352,40 @@ def test_proxy_fills_a_wider_mask_and_is_closed():
     assert np.all(proxy.skin_joints[top, 0] == 1) and np.allclose(proxy.skin_weights.sum(axis=1), 1.0)
 
 
+def test_the_proxys_outline_follows_the_masks_not_the_grids_staircase():
+    """A coat whose sides lean 5 deg, photographed at twice the proxy's grid (as a 768 px photo on the
+    288 grid): in the input view, rendered at the photo's size, the proxy's outline lies on the mask's
+    in every row (no step of a grid pixel every few rows, no grid pixel added around it)."""
+    import cv2
+
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import build_clothed_proxy
+
+    torch.set_num_threads(1)
+    v, f, w, names = _cylinder_body()
+    size, grid = 256, 128
+    front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    body = _silhouette(v, f, front)
+    rows = np.nonzero(body.any(axis=1))[0]
+    top, bottom = rows.min(), rows.max()
+    cx = np.nonzero(body[(top + bottom) // 2])[0].mean()
+    lean = np.tan(np.radians(5.0)) * (bottom - top)
+    coat = np.array([[cx - 45, top], [cx + 45, top], [cx + 45 + lean, bottom], [cx - 45 - lean, bottom]])
+    mask = np.zeros((size, size), np.uint8)
+    cv2.fillPoly(mask, [np.round(coat * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
+    mask |= body.astype(np.uint8)
+    rgb = np.full((size, size, 3), 0.3, np.float32)
+    proxy = build_clothed_proxy(v, f, w, names, front, rgb, mask.astype(np.float32), grid=grid)
+
+    seen = _silhouette(proxy.mesh.vertices, proxy.mesh.faces, front)
+    person = mask > 0
+    assert (seen & person).sum() / (seen | person).sum() > 0.985  # the grid pixel around it: 0.979
+    middle = np.arange(top + 20, bottom - 20)  # the coat's leaning sides, away from its corners
+    for side in (np.argmax, lambda r: len(r) - 1 - np.argmax(r[::-1])):
+        error = np.array([side(seen[r]) - side(person[r]) for r in middle], np.float64)
+        assert np.abs(error).max() <= 1.0, (np.abs(error).max(), error)
+
+
 def test_long_hair_hangs_behind_the_neck_and_short_of_it_nothing_moves():
     """A cylinder "person" from 10 deg above whose photo shows hair over the head and down to the
     shoulders, on a red shirt: from the side, the back reaches further back in the hair's rows (hair
