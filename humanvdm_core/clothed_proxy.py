@@ -523,9 +523,10 @@ def rim_shift(mask: np.ndarray, g: int, rim: np.ndarray) -> np.ndarray:
     centre onto the outline of ``mask`` (size x size, person > 0.5): the zero of its signed distance
     (positive inside), measured at full size, brought to the grid and smoothed over
     :data:`RIM_SMOOTH` grid pixels, reached by one Newton step along its gradient and at most
-    :data:`RIM_MAX_SHIFT` long. Zero off ``rim`` and where the rim lies deeper inside the mask than
-    that (the frame's edge across a cropped person). The proxy's outline then follows the mask's, not
-    the grid's staircase (which a nearly vertical edge shows as notches every few pixels)."""
+    :data:`RIM_MAX_SHIFT` long. Zero off ``rim`` and where a rim pixel lies farther than
+    ``RIM_MAX_SHIFT + 0.5`` grid pixels from the outline (the frame's edge across a cropped person). The
+    proxy's outline then follows the mask's, not the grid's staircase (which a nearly vertical edge shows
+    as a notch every few rows)."""
     person = (mask > 0.5).astype(np.uint8)
     size = mask.shape[0]
     inside = cv2.distanceTransform(person, cv2.DIST_L2, 5)
