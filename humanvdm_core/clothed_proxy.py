@@ -68,9 +68,11 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    not pinched between them or at the hands. ``T = 0`` on the footprint's border, so front and back
    meet there.
 7. **Surface.** Front sheet at ``mid - T``, back sheet at ``mid + T`` (a pixel standing more than
-   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`; where
-   the photo shows long hair, the back sheet behind the head and the neck moves back so the hair
-   hangs plumb from the back of the head, :func:`hang_hair`), one
+   :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`; near the
+   border both sheets' depths are averaged over :data:`EDGE_SMOOTH` grid px, fading out
+   :data:`EDGE_BAND` px inside, so that an outline seen from an angle is not toothed by the grid's rows,
+   :func:`smooth_edge`; where the photo shows long hair, the back sheet behind the head and the neck
+   moves back so the hair hangs plumb from the back of the head, :func:`hang_hair`), one
    vertex per grid pixel of the footprint back-projected along its ray (the border's through its point on
    the mask's outline, step 2), two triangles per 2x2 block
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
@@ -125,6 +127,8 @@ CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this frac
 GARMENT_NOISE = 0.01
 GARMENT_MAX = 0.06
 SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourhood's median
+EDGE_SMOOTH = 2.0  # grid pixels (Gaussian sigma) over which the sheets' depths are averaged near the border ...
+EDGE_BAND = 4.0  # ... fading out over this many grid pixels inside it
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
@@ -315,6 +319,26 @@ def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border:
         sheets.append(np.where(domain & (np.abs(depth - smooth) > limit), smooth, depth))
     half = np.where(border, 0.0, np.maximum(0.5 * (sheets[1] - sheets[0]), 0.0))
     return 0.5 * (sheets[0] + sheets[1]), half
+
+
+def smooth_edge(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: np.ndarray,
+                sigma: float = EDGE_SMOOTH, band: float = EDGE_BAND) -> tuple[np.ndarray, np.ndarray]:
+    """``mid`` and ``half`` near the ``border`` of the footprint ``domain``: averaged over the domain with
+    a Gaussian of ``sigma`` grid pixels, fully on the border and fading to the pixel's own value ``band``
+    grid pixels inside it; ``half`` stays 0 on the border. Each row's run of the grid ends on a pixel
+    boundary of its own, so the sheets' depths near the outline jump from row to row; seen from an
+    angle, the outline then shows a tooth every row or two."""
+    weight = domain.astype(np.float32)
+    norm = np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma), 1e-6)
+
+    def blurred(values: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur((values * weight).astype(np.float32), (0, 0), sigma) / norm
+
+    distance = cv2.distanceTransform((~border).astype(np.uint8), cv2.DIST_L2, 5)
+    w = np.clip(1.0 - distance / band, 0.0, 1.0) * domain
+    mid = w * blurred(mid) + (1.0 - w) * mid
+    half = np.where(border, 0.0, w * blurred(half) + (1.0 - w) * half)
+    return mid, half
 
 
 def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, rgb: np.ndarray,
@@ -661,6 +685,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
     mid, half = remove_spikes(mid, half, domain, border)
+    mid, half = smooth_edge(mid, half, domain, border)
     if head_colour is not None:
         mid, half = hang_hair(mid, half, domain & ~border, maps, rgb, mask, cam_g, np.asarray(head_colour, np.float32))
 

@@ -386,6 +386,40 @@ def test_the_proxys_outline_follows_the_masks_not_the_grids_staircase():
         assert np.abs(error).max() <= 1.0, (np.abs(error).max(), error)
 
 
+def test_smooth_edge_takes_the_rows_teeth_out_of_the_sheets_near_the_border_and_leaves_the_inside():
+    """A footprint with a diagonal edge whose sheets jump from row to row near it (as the grid's row runs
+    make them): after :func:`smooth_edge` the jumps near the border are a fraction of what they were, the
+    border keeps half-thickness 0 and what lies :data:`EDGE_BAND` px inside is untouched."""
+    import cv2
+
+    from humanvdm_core.clothed_proxy import EDGE_BAND, smooth_edge
+    from humanvdm_core.image_fill import CROSS
+
+    yy, xx = np.mgrid[0:64, 0:64]
+    domain = (xx > 12 + 0.6 * yy) & (xx < 60) & (yy > 2) & (yy < 61)
+    border = domain & ~cv2.erode(domain.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+    distance = cv2.distanceTransform((~border).astype(np.uint8), cv2.DIST_L2, 5)
+    teeth = np.where(domain & ~border & (distance < 3), np.where(yy % 2 == 0, 1.0, -1.0), 0.0)
+    half = np.where(border, 0.0, 0.05 * np.sqrt(distance) + 0.03 * teeth) * domain
+    mid = np.where(domain, 3.0 + 0.01 * teeth, 0.0)
+    new_mid, new_half = smooth_edge(mid, half, domain, border)
+
+    near = domain & ~border & (distance < 3)
+    near &= np.roll(near, 1, axis=0) & np.roll(near, -1, axis=0)  # with the pixels above and below it
+
+    def jumps(sheet: np.ndarray) -> float:
+        """The sheet's zigzag down the columns: its second difference along them."""
+        return float(np.abs(np.roll(sheet, 1, axis=0) - 2.0 * sheet + np.roll(sheet, -1, axis=0))[near].mean())
+
+    for before, after in ((mid - half, new_mid - new_half), (mid + half, new_mid + new_half)):
+        assert jumps(after) < 0.5 * jumps(before)  # 0.40: the full average on the border, fading inside
+    assert np.all(new_half[border] == 0.0)
+    inside = domain & (distance >= EDGE_BAND)
+    assert inside.sum() > 200
+    np.testing.assert_array_equal(new_mid[inside], mid[inside])
+    np.testing.assert_array_equal(new_half[inside], half[inside])
+
+
 def test_long_hair_hangs_behind_the_neck_and_short_of_it_nothing_moves():
     """A cylinder "person" from 10 deg above whose photo shows hair over the head and down to the
     shoulders, on a red shirt: from the side, the back reaches further back in the hair's rows (hair
