@@ -1255,8 +1255,9 @@ def test_a_hem_on_the_unseen_side_stands_at_its_own_height_in_the_world(elevatio
 def test_a_skirt_keeps_its_own_colour_at_the_back_down_to_its_end():
     """A green skirt 0.7 m wide over blue legs, photographed from 20 deg above: seen from behind, the
     proxy's skirt is green down to its lower end. Its back hangs lower than its hem along the rays, and
-    taking the legs' colours at that height painted a band of blue across the skirt's back
-    (:func:`unseen_rows`' ``garment``)."""
+    taking the legs' colours at that height painted a band of blue across the skirt's back: outside the
+    body the unseen side keeps its own rows, and behind the body the height is the body's far surface's
+    (:func:`unseen_rows`, :func:`build_clothed_proxy`)."""
     from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import build_clothed_proxy
     from humanvdm_core.render import render_views
