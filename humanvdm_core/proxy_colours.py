@@ -19,7 +19,8 @@ Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; on
   only, since a top covers more of the back than of the front; skin of the face's colour within
   :data:`ARM_SKIN_REACH` of the fitted arms and hands (a forearm held before the torso, wider in the
   photo than the fitted one) is theirs, no source of the torso's colours (nor of those it shares with the
-  legs), so crossed arms leave no band of skin on the back; hands keep their own colour; a thick
+  legs), so crossed arms leave no band of skin on the back; hands keep their own colour; the back of
+  each foot is its shoe, the colour of the foot's lowest rows in the photo (:func:`shoes`); a thick
   region outside the body (a held object, a hat, a coat's flare) takes its own median per row, not the
   nearest part's; "the same height" is the height in the world for the torso and the legs: seen from
   above, the unseen side lies lower than the seen one along each ray, so its hem, belt or waistline comes
@@ -50,6 +51,7 @@ SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of 
 ARM_SKIN_REACH = 0.03  # skin within this fraction of the frame of the fitted arms and hands is theirs (see below)
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
 NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
+SHOE_ROWS = 0.3  # the lowest share of a foot's rows in the photo that shows its shoe (toe box, sole)
 PAIRED = ("arms", "legs")  # parts whose unseen side is coloured per side of the body
 BY_HEIGHT = ("torso", "legs")  # parts whose unseen side takes the photo's colours at its own world height
 LOOSE_OWN_MIN = 0.005  # a region outside the body covering this share of the mask keeps its own colours at the back ...
@@ -177,7 +179,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     leaves less than half of what they show; with ``front_side`` / ``back_side`` (the body's side per
     pixel, +1 left, -1 right) each arm and leg takes the medians of its own side; the torso and the legs
     share one median per row where both the nearest and the farthest surface are one of them (the
-    garment's hem, not the body's waist, divides them); hands keep their own colour,
+    garment's hem, not the body's waist, divides them); hands keep their own colour, each foot takes its
+    shoe's (:func:`shoes`),
     the head takes ``head_colour`` (behind a collar or a shoulder the neck takes the clothing's colour).
     With ``skin_colour`` (the face's), a torso row of the neckline (from the torso's top, the base of the
     neck, to :data:`NECKLINE_DEPTH` of the person's height below the shoulders' top, the highest arm
@@ -281,6 +284,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
                     if own.any() and own_source.sum() >= 4:
                         per_row = row_medians(photo, own_source, band)
                         out[own] = at_rows(per_row, own, PARTS[p] in BY_HEIGHT)
+    shoes(photo, out, shown(person & (front_part == PARTS.index("feet"))), back_part == PARTS.index("feet"),
+          front_side, back_side)
     # where the torso or the legs are the farthest surface and the nearest one too (or an arm or a hand
     # held before them), the garments' own hem (a shirt over the hips, a dress over the thighs) decides,
     # not the body's waist line: one median per row over the torso and the legs together
@@ -305,6 +310,24 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         mirrored = person & (front_part == head) & (back_part == head)
         out[mirrored] = photo[mirrored]
     return out
+
+
+def shoes(photo: np.ndarray, out: np.ndarray, shown: np.ndarray, want: np.ndarray,
+          front_side: np.ndarray | None, back_side: np.ndarray | None) -> None:
+    """Colour ``out`` at ``want`` (the unseen side of the feet) with each foot's shoe: the median colour of
+    the lowest :data:`SHOE_ROWS` of the foot's rows that the photo shows (``shown``), where a shoe's toe
+    box or sole is, not of the pixel's own row (a pump's instep skin would give a bare heel; a sock, a
+    boot or a bare foot is the same colour there). Per side of the body with ``front_side`` /
+    ``back_side`` (+1 left, -1 right), else one for both feet."""
+    sides = (-1, 1) if front_side is not None and back_side is not None else (None,)
+    for side in sides:
+        src = shown if side is None else shown & (front_side == side)
+        dst = want if side is None else want & (back_side == side)
+        if src.sum() < 4 or not dst.any():
+            continue
+        ys = np.nonzero(src)[0]
+        low = src & (np.arange(src.shape[0])[:, None] >= ys.max() - SHOE_ROWS * (ys.max() - ys.min()))
+        out[dst] = median_colour(photo[low])
 
 
 def face_colour(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray,

@@ -141,6 +141,31 @@ def test_what_one_arm_holds_stays_off_the_other_arms_back():
     assert list(side_of_joints(["upperarm01.L", "upperarm01.R", "spine01", "left_knee", "right_elbow"])) == [1, -1, 0, 1, -1]
 
 
+def test_the_back_of_a_foot_is_its_shoe_not_the_skin_of_its_instep():
+    """Two feet (rows 60-99) seen from the front: the instep's skin above, each foot's own shoe in its
+    lowest 8 rows (a pump: dark on the left foot, red on the right). The heel behind each foot, in the
+    instep's rows, takes its own foot's shoe colour; without sides one colour for both, still a shoe's."""
+    size = 100
+    skin = np.array((0.85, 0.65, 0.55), np.float32)
+    dark, red = np.array((0.1, 0.1, 0.12), np.float32), np.array((0.8, 0.1, 0.1), np.float32)
+    photo = np.full((size, size, 3), 0.9, np.float32)
+    mask = np.zeros((size, size), np.float32)
+    mask[:, 20:45] = mask[:, 55:80] = 1.0
+    photo[:60, 20:45] = photo[:60, 55:80] = (0.1, 0.15, 0.4)  # trousers
+    photo[60:, 20:45] = photo[60:, 55:80] = skin
+    photo[92:, 55:80] = dark  # the left foot's shoe (the person's left: the image's right)
+    photo[92:, 20:45] = red
+    part = np.full((size, size), PARTS.index("legs"))
+    part[60:] = PARTS.index("feet")
+    side = np.zeros((size, size), np.int64)
+    side[:, :50], side[:, 50:] = -1, 1
+    out = unseen_side_colours(photo, mask, part, part, None, side, side)
+    assert np.allclose(out[70, 65], dark, atol=0.05) and np.allclose(out[70, 30], red, atol=0.05)
+    assert np.allclose(out[40, 65], photo[40, 65], atol=0.05)  # the legs keep their rows' colours
+    both = unseen_side_colours(photo, mask, part, part, None)[70, 65]
+    assert np.linalg.norm(both - skin) > 0.3
+
+
 def test_a_v_neck_shows_skin_in_front_and_the_shirt_at_the_back():
     """A white shirt (arms from row 10: the shoulders' top) with a V-neck down to row 40 (skin between the
     shirt's two sides), a wide opening at rows 50-60 (60 % skin, below the neckline's rows) and a
