@@ -84,7 +84,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    the skin of arms held before it, hands in their own colour and the head's back in the hair's
    (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
    at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
-   above, the back sheet lies lower than the front along each ray.
+   above, the back sheet lies lower than the front along each ray. The body parts' map is resized from
+   the grid to the texture with smooth borders (:func:`smooth_labels`), so the hairline at the back of
+   the neck is not the grid's staircase.
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -121,6 +123,7 @@ ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out o
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
 CLOTHING = {"torso": 0.02, "feet": 0.025}
+LABEL_SMOOTH = 1.0  # grid px over which the body parts' borders are smoothed for the texture (smooth_labels)
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
 # ... or, for the torso and the legs, as far as the person's mask stands out beyond the body at both sides
 # (garment_margins), when that is at least GARMENT_NOISE (a grid pixel) and at most GARMENT_MAX
@@ -717,8 +720,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # colour: front = the photo (band refilled); back = the unseen side; one [front | back] texture
     front_tex = refill_band(rgb, mask)
     to_full = (size / g)
-    fp = cv2.resize(maps["front_part"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
-    bp = cv2.resize(maps["back_part"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    fp = smooth_labels(maps["front_part"], size).astype(np.float32)  # no grid steps along a part's border
+    bp = smooth_labels(maps["back_part"], size).astype(np.float32)
     known = fp >= 0
     fp = nearest_fill(fp, known).astype(np.int64) if known.any() else np.zeros_like(fp, np.int64)
     bknown = bp >= 0
@@ -755,6 +758,17 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     body_fraction = float(body.sum() / max(1, (person_g & domain).sum()))
     return ClothedProxy(mesh=mesh, skin_joints=skin_j, skin_weights=skin_w, front=front_flags,
                         body_fraction=min(1.0, body_fraction))
+
+
+def smooth_labels(labels: np.ndarray, size: int, sigma: float = LABEL_SMOOTH) -> np.ndarray:
+    """``labels`` (g, g) int resized to ``size`` x ``size`` with smooth borders between them: each label's
+    indicator blurred (Gaussian, ``sigma`` grid px) and resized linearly, the largest one per pixel. A
+    border the grid draws as a staircase (the hairline at the back of the neck) becomes a smooth line;
+    a region thinner than about ``sigma`` may shrink."""
+    values = np.unique(labels)
+    stack = [cv2.resize(cv2.GaussianBlur((labels == v).astype(np.float32), (0, 0), sigma), (size, size),
+                        interpolation=cv2.INTER_LINEAR) for v in values]
+    return values[np.argmax(np.stack(stack), axis=0)]
 
 
 def nearest_skinning(points: np.ndarray, body_vertices: np.ndarray, weights: np.ndarray,

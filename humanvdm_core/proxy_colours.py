@@ -345,7 +345,8 @@ def face_colour(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray,
 def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:
     """Where long hair hangs on the unseen side: the photo's pixels of about the hair's colour
     (:data:`HAIR_DISTANCE`) connected to the top of the head, and, per column of their span, everything
-    from the top down to the lowest of them nearby (hair seen beside the neck hangs behind it too),
+    from the top down to the lowest of them nearby (hair seen beside the neck hangs behind it too; that
+    lowest row averaged over the same span of columns, so its lower edge slopes up where the locks end),
     at most down to the middle of the person's height. Used only where the torso's clothes differ from
     the hair's colour by more than :data:`HAIR_DISTANCE` (else hair and clothes cannot be told apart)."""
     person = mask > 0.5
@@ -366,6 +367,8 @@ def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, ha
     cols = np.nonzero(lowest >= 0)[0]
     span = max(3, (cols.max() - cols.min()) // 3) | 1
     lowest = cv2.dilate(lowest.astype(np.float32)[None], np.ones((1, span), np.uint8))[0]
+    inside = lowest[cols.min():cols.max() + 1]  # averaged over the same span: a slope, not a wall, where it rises
+    lowest[cols.min():cols.max() + 1] = cv2.blur(inside[None], (span, 1), borderType=cv2.BORDER_REPLICATE)[0]
     lowest = np.minimum(lowest, top + 0.5 * (bottom - top))
     lowest[: cols.min()] = -1
     lowest[cols.max() + 1:] = -1

@@ -4,6 +4,7 @@ in a skirt -- the skirt's width from the side."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -1335,3 +1336,52 @@ def test_unseen_rows_follow_a_wall_in_height_and_leave_a_level_surface_alone():
     assert (rows[inside & below] > yy[inside & below]).all()
     level = -1.2 / np.minimum(rays @ up, -1e-3)  # a level surface 1.2 m below the camera
     assert np.allclose(unseen_rows(level, level + 0.3, cam, domain)[domain], yy[domain])
+
+
+def test_part_borders_follow_a_slanted_line_not_the_grids_steps():
+    """Two parts split by a slanted line on a 32 px grid, resized to 256 px for the texture: the border
+    (per column, the first row of the lower part; away from the image's edges) lies within 2 px of the
+    line, where the grid's own steps put it up to 6 px off; far from the line every pixel keeps its part."""
+    from humanvdm_core.clothed_proxy import smooth_labels
+
+    g, size = 32, 256
+    k = size / g
+    yy, xx = np.mgrid[0:g, 0:g] + 0.5
+    labels = np.where(yy > 0.3 * xx + 8.0, PARTS.index("torso"), PARTS.index("head"))
+    out = smooth_labels(labels, size)
+    steps = cv2.resize(labels.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    x = np.arange(size)
+    line = (0.3 * (x + 0.5) / k + 8.0) * k
+    inner = (x >= 2 * k) & (x < size - 2 * k)  # away from the image's edges
+    for resized, limit in ((out, 2.0), (steps, 6.0)):
+        first = np.argmax(resized == PARTS.index("torso"), axis=0)
+        assert np.abs(first - line)[inner].max() <= limit
+    assert np.abs(np.argmax(steps == PARTS.index("torso"), axis=0) - line)[inner].max() > 3.0
+    Y = np.mgrid[0:size, 0:size][0] + 0.5
+    far = np.abs(Y - line[None, :]) > 2 * k
+    np.testing.assert_array_equal(out[far], cv2.resize(labels, (size, size), interpolation=cv2.INTER_NEAREST)[far])
+
+
+def test_the_hair_behind_the_neck_ends_in_a_slope_not_a_wall():
+    """Hair over the head and down the two sides of a face to row 45 (the face's columns show hair to row
+    20 only), on a red shirt: the unseen side's hair (:func:`hair_curtain`) reaches row 44 behind the
+    locks and rises towards the middle, with no step between neighbouring columns taller than a fifth of
+    the 25 rows it rises."""
+    from humanvdm_core.proxy_colours import hair_curtain
+
+    size = 100
+    hair = np.array((0.2, 0.12, 0.05), np.float32)
+    photo = np.full((size, size, 3), (0.8, 0.1, 0.1), np.float32)
+    mask = np.zeros((size, size), np.float32)
+    mask[5:, 15:85] = 1.0
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:62] = PARTS.index("head")
+    photo[5:20, 15:85] = hair
+    photo[20:45, 15:30] = photo[20:45, 70:85] = hair
+    photo[20:45, 30:70] = (0.85, 0.65, 0.55)  # the face
+    region = hair_curtain(photo, mask, part, hair)
+    cols = np.arange(15, 85)
+    lowest = np.array([np.nonzero(region[:, c])[0].max() for c in cols])
+    assert lowest[:10].min() >= 44 and lowest[-10:].min() >= 44
+    assert lowest[30:40].max() < 40
+    assert np.abs(np.diff(lowest)).max() <= 0.2 * 25
