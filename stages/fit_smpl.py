@@ -33,7 +33,10 @@ Output ``body``:
 - ``report.json``: fit quality per frame and overall, frames used/skipped and why, warnings (every
   per-frame one) and ``warnings_summary``: the same, one line per kind with the frames it concerns
   (e.g. "keypoints unusable in 6 of 21 frames (0003, 0007, ...)"), plus skipped frames and fit-quality
-  warnings. The summary lines are also logged as warnings, so they reach the run summary.
+  warnings (a keypoint reprojection error over 3 % of the frame; a body partly outside the person's
+  masks, or covering little of them: ``silhouette_doubts``; ``mean_iou``, ``mean_outside`` and
+  ``mean_cover`` hold the numbers). The summary lines are also logged as warnings, so they reach the run
+  summary.
 
 Bad input: no person in any selected frame -> an error naming the frames; fewer usable frames than
 needed (at least ``min(3, selected)``, one of them with keypoints) -> an error saying how many.
@@ -177,7 +180,14 @@ def run(ctx: StageContext) -> None:
     import numpy as np
     import torch
 
-    from humanvdm_core.body.fit import FitOptions, fit_body, load_body_model, observe_frames, silhouette_iou
+    from humanvdm_core.body.fit import (
+        FitOptions,
+        fit_body,
+        load_body_model,
+        observe_frames,
+        silhouette_doubts,
+        silhouette_scores,
+    )
     from humanvdm_core.frames import open_frame_set, read_frames
     from humanvdm_core.io import write_npz
     from humanvdm_core.workflow.atomic import atomic_write_text
@@ -228,7 +238,7 @@ def run(ctx: StageContext) -> None:
     used_cams = cameras.subset(fit.frame_indices)
     faces = model.faces.numpy().astype(np.int64)
     vertices = fit.output.vertices[0].numpy()
-    iou = silhouette_iou(vertices, faces, used_cams, [o.mask for o in observations])
+    iou, outside, cover = silhouette_scores(vertices, faces, used_cams, [o.mask for o in observations])
 
     with torch.no_grad():
         canon_params = model.canonical_params(1)
@@ -283,8 +293,7 @@ def run(ctx: StageContext) -> None:
     mean_reproj = float(np.nanmean(fit.reprojection_px)) if np.any(np.isfinite(fit.reprojection_px)) else np.nan
     if np.isfinite(mean_reproj) and mean_reproj > 0.03 * cameras.height:
         warnings.append(f"poor keypoint fit: mean reprojection error {mean_reproj:.1f} px")
-    if float(iou.mean()) < 0.75:
-        warnings.append(f"poor silhouette fit: mean IoU {float(iou.mean()):.2f}")
+    warnings += silhouette_doubts(outside, cover)
     summary = summarize_warnings(warnings, len(selected),
                                  {paths[i].stem: why for i, why in sorted(failed.items())})
     for line in summary:
@@ -295,6 +304,7 @@ def run(ctx: StageContext) -> None:
         "frames_used": fit.frame_indices,
         "frames_skipped": {paths[i].stem: why for i, why in sorted(failed.items())},
         "mean_reprojection_px": r(mean_reproj), "mean_iou": r(float(iou.mean())),
+        "mean_outside": r(float(outside.mean())), "mean_cover": r(float(cover.mean())),
         "per_frame": [{"frame": int(i), "azimuth_deg": r(float(a)), "reprojection_px": r(float(e)), "iou": r(float(u)),
                        "lr_swapped": {g: bool(s) for g, s in zip(("face", "arms", "legs"), sw, strict=True)}}
                       for i, a, e, u, sw in zip(fit.frame_indices, used_cams.azimuth_deg, fit.reprojection_px, iou,

@@ -880,3 +880,36 @@ def test_stage_params_match_fit_options():
     assert {"silhouette_cover_weight", "bone_direction_weight", "single_view_pose_prior_weight_3d"} <= shared
     for name in shared:
         assert SPEC.params[name].default == defaults[name], name
+
+
+def test_a_body_inside_a_clothed_person_is_no_poor_fit_and_one_sticking_out_is():
+    """A box "body" seen by one camera against three person masks: its own silhouette grown on every side
+    (a coat: IoU under 0.75, which used to read "poor silhouette fit") raises no doubt; the same mask
+    moved so a fifth of the body or more sticks out raises the poor fit; a mask grown until the body covers
+    under 40 % of it (a ball gown) says how little the body covers."""
+    import cv2
+    import trimesh
+
+    from humanvdm_core.body.fit import render_masks, silhouette_doubts, silhouette_scores
+    from humanvdm_core.cameras import orbit_cameras
+
+    torch.set_num_threads(1)
+    box = trimesh.creation.box(extents=(0.4, 1.6, 0.3))
+    cam = orbit_cameras(1, 128, 33.8, 0.0, 3.0, azimuths_deg=np.array([0.0]))
+    own = render_masks(box.vertices, box.faces, cam)[0] > 0.5
+
+    def grown(px: int) -> np.ndarray:
+        return cv2.dilate(own.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)).astype(np.float32)
+
+    coat = grown(4)
+    moved = np.roll(grown(1), int(0.4 * np.nonzero(own.any(axis=0))[0].size), axis=1)
+    gown = grown(20)
+    scores = {name: silhouette_scores(box.vertices, box.faces, cam, [m]) for name, m in
+              (("coat", coat), ("moved", moved), ("gown", gown))}
+    iou, outside, cover = scores["coat"]
+    assert iou[0] < 0.75 and outside[0] < 0.02 and silhouette_doubts(outside, cover) == []
+    iou, outside, cover = scores["moved"]
+    assert outside[0] > 0.2 and silhouette_doubts(outside, cover)[0].startswith("poor silhouette fit")
+    iou, outside, cover = scores["gown"]
+    doubts = silhouette_doubts(outside, cover)
+    assert cover[0] < 0.4 and len(doubts) == 1 and "covers only" in doubts[0]

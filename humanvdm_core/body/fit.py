@@ -176,6 +176,8 @@ TORSO_BONES = (8, 9, 10)  # shoulder line, hip line, spine: fitted with the glob
 KEYPOINT_SIGMA = 0.02  # Cauchy scale of the keypoint residual, fraction of the image height
 SILHOUETTE_SIGMA = 0.01  # silhouette distances are divided by this (fraction of the image size)
 SILHOUETTE_SIZE = 160  # masks are compared at this resolution
+OUTSIDE_DOUBT = 0.1  # a fitted body with more than this share outside the person's masks is doubtful ...
+COVER_DOUBT = 0.5  # ... and one covering less than this share of them is said (silhouette_doubts)
 CONTOUR_POINTS = 256  # contour samples per frame
 MIN_KEYPOINT_CONFIDENCE = 0.3  # keypoints below this confidence are ignored
 BONE_DIRECTION_WEIGHT = 2.0  # default FitOptions.bone_direction_weight
@@ -939,19 +941,48 @@ def render_masks(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, max_
     return render_views(mesh, cams, (0.0, 0.0, 0.0)).rgba[..., 3]
 
 
-def silhouette_iou(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, masks: Sequence[np.ndarray],
-                   max_size: int = 512) -> np.ndarray:
-    """(N,) IoU of the rasterised mesh (coverage > 0.5) and each mask (> 0.5), per camera."""
+def silhouette_scores(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, masks: Sequence[np.ndarray],
+                      max_size: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per camera, the rasterised mesh (coverage > 0.5) against each mask (> 0.5): (N,) their IoU, (N,) the
+    share of the mesh's silhouette outside the mask and (N,) the share of the mask the mesh covers. A body
+    fitted inside a clothed person (a dress, a coat, long hair) has a low IoU and nothing outside; a wrong
+    pose or size has both."""
     import cv2
 
     rendered = render_masks(vertices, faces, cameras, max_size)
-    out = []
+    iou, outside, cover = [], [], []
     for r, m in zip(rendered, masks, strict=True):
         m = cv2.resize(np.asarray(m, np.float32), (r.shape[1], r.shape[0]), interpolation=cv2.INTER_AREA)
         a, b = r > 0.5, m > 0.5
-        union = int(np.sum(a | b))
-        out.append(float(np.sum(a & b)) / union if union else 1.0)
-    return np.array(out)
+        both, union = int(np.sum(a & b)), int(np.sum(a | b))
+        iou.append(both / union if union else 1.0)
+        outside.append(float(np.sum(a & ~b)) / max(int(np.sum(a)), 1))
+        cover.append(both / max(int(np.sum(b)), 1))
+    return np.array(iou), np.array(outside), np.array(cover)
+
+
+def silhouette_doubts(outside: np.ndarray, cover: np.ndarray) -> list[str]:
+    """What the fitted body's silhouettes make doubtful, as warnings (:func:`silhouette_scores`' per-frame
+    share of the body outside the person's mask, ``outside``, and of the mask the body covers, ``cover``).
+    The fit is one-sided (the body lies inside the person; clothing does not stretch it), so a low IoU
+    alone is a clothed person, not a bad fit: a body more than :data:`OUTSIDE_DOUBT` outside the person
+    is (a wrong pose or size); one covering less than :data:`COVER_DOUBT` of the person is said too (a
+    ball gown, a big coat, or a body fitted too small)."""
+    out_share, cover = float(np.mean(outside)), float(np.mean(cover))
+    doubts = []
+    if out_share > OUTSIDE_DOUBT:
+        doubts.append(f"poor silhouette fit: {out_share:.0%} of the fitted body lies outside the person's "
+                      "silhouette (mean over the frames)")
+    if cover < COVER_DOUBT:
+        doubts.append(f"the fitted body covers only {cover:.0%} of the person's silhouette (loose clothing, long "
+                      "hair or a held object, which the body is not stretched to fill; or a body fitted too small)")
+    return doubts
+
+
+def silhouette_iou(vertices: np.ndarray, faces: np.ndarray, cameras: Cameras, masks: Sequence[np.ndarray],
+                   max_size: int = 512) -> np.ndarray:
+    """(N,) IoU of the rasterised mesh (coverage > 0.5) and each mask (> 0.5), per camera."""
+    return silhouette_scores(vertices, faces, cameras, masks, max_size)[0]
 
 
 def joint_error_mm(fitted: np.ndarray, truth: np.ndarray, truth_height_m: float | None = None,
@@ -974,5 +1005,5 @@ def coco_indices(names: Sequence[str]) -> list[int]:
 __all__ = [
     "FIT_JOINTS", "FitOptions", "FitResult", "FrameObservation", "HumanVDMError", "SWAP_GROUPS",
     "coco_indices", "fit_body", "joint_error_mm", "load_body_model", "observe_frames", "project", "render_masks",
-    "silhouette_iou",
+    "silhouette_doubts", "silhouette_iou", "silhouette_scores",
 ]
