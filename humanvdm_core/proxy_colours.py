@@ -3,8 +3,9 @@
 Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; one texture,
 ``[front | back]`` side by side:
 
-* front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside
-  (:func:`refill_band`), so no background colour smears onto the edge;
+* front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside, blurred
+  there (:func:`refill_band`), so no background colour smears onto the edge and the edge's rows do not run
+  out as streaks over the rim a side view sees;
 * back (the unseen side, :func:`unseen_side_colours`): each back pixel takes, for its body part (the
   part of the farthest body surface there; outside the body, the nearest part), the median colour of
   that part's visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments
@@ -43,7 +44,8 @@ import numpy as np
 from humanvdm_core.body.parts import PARTS
 from humanvdm_core.image_fill import nearest_fill
 
-BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside
+BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside ...
+BAND_BLUR = 3.0  # ... and blurred there (Gaussian sigma, input-view pixels)
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
@@ -66,15 +68,20 @@ HAIR_SHARE = 0.2  # ... when at least this share of the band is left
 HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
 
 
-def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX) -> np.ndarray:
+def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX, band_blur: float = BAND_BLUR) -> np.ndarray:
     """``rgb`` with the mask's silhouette band (``band_px``) and everything outside replaced by the
-    nearest pixel further inside, so edge pixels never mix in the background."""
+    nearest pixel further inside, so edge pixels never mix in the background, and then blurred (a Gaussian
+    of ``band_blur`` px) there: each row's colour at the edge, which a side view sees stretched over the
+    proxy's rim, blends with its neighbours' instead of running out as a streak."""
     person = mask > 0.5
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
     inner = cv2.erode(person.astype(np.uint8), kernel).astype(bool)
     if inner.sum() < 64:
         inner = person
-    return nearest_fill(rgb, inner)
+    out = nearest_fill(rgb, inner)
+    # the band seen from the side stretches over the sheets' steep rim: blurred, its rows blend instead of
+    # running out as streaks of the edge's colours
+    return np.where((~inner)[..., None], cv2.GaussianBlur(out, (0, 0), band_blur), out)
 
 
 def median_colour(pixels: np.ndarray) -> np.ndarray:

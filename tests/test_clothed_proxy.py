@@ -1385,3 +1385,27 @@ def test_the_hair_behind_the_neck_ends_in_a_slope_not_a_wall():
     assert lowest[:10].min() >= 44 and lowest[-10:].min() >= 44
     assert lowest[30:40].max() < 40
     assert np.abs(np.diff(lowest)).max() <= 0.2 * 25
+
+
+def test_the_refilled_band_keeps_no_background_and_no_row_streaks():
+    """A disc "person" on a green background whose photo alternates two colours every 2 rows (hair
+    strands): the band refilled from inside holds no green, its row-to-row changes are under half of what
+    copying the nearest inside pixel gives (the streaks a side view stretches over the rim), and well
+    inside the mask the photo is untouched."""
+    from humanvdm_core.proxy_colours import BAND_PX, refill_band
+
+    size = 128
+    yy, xx = np.mgrid[0:size, 0:size]
+    mask = ((yy - 64) ** 2 + (xx - 64) ** 2 < 50 ** 2).astype(np.float32)
+    photo = np.where(((yy // 2) % 2 == 0)[..., None], (0.2, 0.15, 0.1), (0.8, 0.6, 0.4)).astype(np.float32)
+    photo[mask < 0.5] = (0.0, 1.0, 0.0)
+    out = refill_band(photo, mask)
+    plain = refill_band(photo, mask, band_blur=1e-3)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * BAND_PX + 9, 2 * BAND_PX + 9), np.uint8)).astype(bool)
+    band = (mask > 0.5) & ~cv2.erode(mask.astype(np.uint8), np.ones((2 * BAND_PX - 1, 2 * BAND_PX - 1),
+                                                                    np.uint8)).astype(bool)
+    assert np.abs(out[band] - (0.0, 1.0, 0.0)).sum(axis=1).min() > 0.5  # no background colour
+    step = np.abs(np.diff(out, axis=0)).sum(axis=2)[band[1:] & band[:-1]].mean()
+    step_plain = np.abs(np.diff(plain, axis=0)).sum(axis=2)[band[1:] & band[:-1]].mean()
+    assert step < 0.5 * step_plain
+    np.testing.assert_array_equal(out[inner], photo[inner])
