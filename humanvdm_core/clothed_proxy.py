@@ -118,6 +118,7 @@ LOOSE_RANGE = (0.15, 0.45)  # ... how much to inflate: none below the first shar
 HAIR_DEPTH = 0.05  # metres of hair behind the skull where the photo shows long hair (a hair curtain) ...
 HAIR_CURTAIN_DEPTH = 0.03  # ... and at least this far behind the body where the curtain hangs ...
 HAIR_FADE = 0.1  # ... fading out over this fraction of the grid below the curtain's lowest row
+HAIR_BELOW_CHIN = 0.03  # a curtain column reaching this fraction of the grid below the chin hangs beside the face too
 SKIN_INFLUENCES = 4
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
@@ -352,7 +353,9 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     (``mid + half``) reaches at least that far back, plumb (the same horizontal distance in front of the
     camera, :func:`horizontal_reach`; beyond the head's columns the nearest head column's), and at least
     :data:`HAIR_CURTAIN_DEPTH` behind the body, so the hair fills the hollow of the neck instead of
-    clinging to it; below the curtain's lowest row that pull fades out over :data:`HAIR_FADE` of the
+    clinging to it; so does the hair beside the face below the head's widest row, in the columns where the
+    curtain reaches :data:`HAIR_BELOW_CHIN` below the chin (long hair hangs plumb from the ears down, no
+    ledge where the head's part ends); below the curtain's lowest row that pull fades out over :data:`HAIR_FADE` of the
     grid (the hair falls onto the back, no ledge). ``inner``: the pixels that may move (not the
     footprint's border). Returns the new ``(mid, half)``; the front sheet does not move."""
     g = mid.shape[0]
@@ -365,7 +368,8 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     head = inner & (front_part == PARTS.index("head"))
     if head.sum() < 8:
         return mid, half
-    curtain = distinct_hair_curtain(photo, person, front_part, hair) & inner & ~head
+    hairy = distinct_hair_curtain(photo, person, front_part, hair) & inner
+    curtain = hairy & ~head
     if not curtain.any():
         return mid, half
     reach = horizontal_reach(camera)
@@ -375,6 +379,14 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     plumb = (np.interp(np.arange(g), cols, skull)[None, :] + HAIR_DEPTH) / reach
     rows = np.arange(g)[:, None]
     last = np.where(curtain.any(axis=0), g - 1 - np.argmax(curtain[::-1], axis=0), -1)[None, :]
+    # long hair beside the face (outside the head's body pixels, below its widest row, in columns where the
+    # curtain hangs below the chin) hangs with the hair below it, not forward of it: no ledge at the chin
+    skull_px = head & (maps["front_part"] == PARTS.index("head"))
+    if skull_px.any():
+        widest = int(np.argmax(skull_px.sum(axis=1)))
+        chin = int(np.nonzero(skull_px.any(axis=1))[0].max())
+        long_cols = last >= chin + HAIR_BELOW_CHIN * g
+        curtain = curtain | (hairy & head & ~skull_px & (rows > widest) & long_cols)
     below = (rows > last) & (last >= 0) & inner & ~head
     weight = np.where(curtain, 1.0, below * np.clip(1.0 - (rows - last) / (HAIR_FADE * g), 0.0, 1.0))
     target = np.maximum(back + HAIR_CURTAIN_DEPTH, plumb)

@@ -1409,3 +1409,40 @@ def test_the_refilled_band_keeps_no_background_and_no_row_streaks():
     step_plain = np.abs(np.diff(plain, axis=0)).sum(axis=2)[band[1:] & band[:-1]].mean()
     assert step < 0.5 * step_plain
     np.testing.assert_array_equal(out[inner], photo[inner])
+
+
+def test_long_hair_beside_the_face_hangs_with_the_hair_below_it():
+    """A grid "person" (head rows 8-24, shoulders below) with dark hair over the head and down beside the
+    face to row 36, on a red shirt: after :func:`hang_hair` the hair beside the face below the head's
+    widest row hangs plumb with the hair below the chin (no ledge where the head's part ends), the
+    hair beside the crown above that row is left as it was, and the face's columns keep their front."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import hang_hair, horizontal_reach
+
+    g = 64
+    cam = orbit_cameras(1, g, 33.8, 10.0, 3.0, azimuths_deg=np.array([0.0]))
+    yy, xx = np.mgrid[0:g, 0:g]
+    head = (yy - 16) ** 2 / 8.5 ** 2 + (xx - 32) ** 2 / 6.5 ** 2 <= 1.0
+    torso = (yy >= 25) & (xx >= 20) & (xx <= 44)
+    hair_px = (yy >= 8) & (yy <= 36) & (((xx >= 22) & (xx <= 26)) | ((xx >= 38) & (xx <= 42))) & ~head
+    mask = (head | torso | hair_px).astype(np.float32)
+    part = np.full((g, g), -1)
+    part[torso] = PARTS.index("torso")
+    part[head] = PARTS.index("head")
+    maps = {"front_part": part, "back_part": part.copy()}
+    hair = np.array((0.15, 0.1, 0.05), np.float32)
+    rgb = np.full((g, g, 3), (0.85, 0.1, 0.1), np.float32)
+    rgb[head] = (0.85, 0.65, 0.55)
+    rgb[hair_px] = hair
+    rgb[(yy <= 10) & head] = hair  # the crown
+    body = head | torso
+    mid = np.where(body, 3.0, 3.0)
+    half = np.where(body, 0.1, 0.03)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    new_mid, new_half = hang_hair(mid, half, inner, maps, rgb, mask, cam, hair)
+    back, new_back = mid + half, new_mid + new_half
+    beside, below, crown = (21, 24), (32, 24), (11, 24)
+    level = new_back * horizontal_reach(cam)  # the horizontal distance in front of the camera: plumb is one value
+    assert level[beside] == pytest.approx(level[below], abs=0.01) and new_back[beside] > back[beside] + 0.08
+    assert new_back[crown] == pytest.approx(back[crown])
+    np.testing.assert_allclose((new_mid - new_half)[inner], (mid - half)[inner])
