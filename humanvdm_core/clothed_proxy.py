@@ -120,11 +120,11 @@ HAIR_CURTAIN_DEPTH = 0.03  # ... and at least this far behind the body where the
 HAIR_FADE = 0.1  # ... fading out over this fraction of the grid below the curtain's lowest row
 HAIR_BELOW_CHIN = 0.03  # a curtain column reaching this fraction of the grid below the chin hangs beside the face too
 SKIN_INFLUENCES = 4
+LABEL_SMOOTH = 1.0  # grid px over which the body parts' borders are smoothed for the texture (smooth_labels)
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
 CLOTHING = {"torso": 0.02, "feet": 0.025}
-LABEL_SMOOTH = 1.0  # grid px over which the body parts' borders are smoothed for the texture (smooth_labels)
 CLOTHING_FEATHER = 0.04  # ... fading into the neighbouring parts over this fraction of the grid
 # ... or, for the torso and the legs, as far as the person's mask stands out beyond the body at both sides
 # (garment_margins), when that is at least GARMENT_NOISE (a grid pixel) and at most GARMENT_MAX
@@ -355,9 +355,9 @@ def hang_hair(mid: np.ndarray, half: np.ndarray, inner: np.ndarray, maps: dict, 
     :data:`HAIR_CURTAIN_DEPTH` behind the body, so the hair fills the hollow of the neck instead of
     clinging to it; so does the hair beside the face below the head's widest row, in the columns where the
     curtain reaches :data:`HAIR_BELOW_CHIN` below the chin (long hair hangs plumb from the ears down, no
-    ledge where the head's part ends); below the curtain's lowest row that pull fades out over :data:`HAIR_FADE` of the
-    grid (the hair falls onto the back, no ledge). ``inner``: the pixels that may move (not the
-    footprint's border). Returns the new ``(mid, half)``; the front sheet does not move."""
+    ledge where the head's part ends); below the curtain's lowest row that pull fades out over
+    :data:`HAIR_FADE` of the grid (the hair falls onto the back, no ledge). ``inner``: the pixels that may
+    move (not the footprint's border). Returns the new ``(mid, half)``; the front sheet does not move."""
     g = mid.shape[0]
     known = maps["front_part"] >= 0
     if not known.any():
