@@ -8,7 +8,8 @@ Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; on
   out as streaks over the rim a side view sees;
 * back (the unseen side, :func:`unseen_side_colours`): each back pixel takes, for its body part (the
   part of the farthest body surface there; outside the body, the nearest part), the median colour of
-  that part's visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`): garments
+  that part's visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`; a row where
+  little of the part shows, a shirt between crossed forearms, takes a neighbour's): garments
   keep their colours from top to bottom, but a print, logo, tie or held object narrower than half the
   part is not carried over, nor a wider print on the torso a few rows tall whose colour does not recur
   (:func:`without_print_runs`; stripes recur and stay); arms and legs take their medians per side of
@@ -47,6 +48,7 @@ from humanvdm_core.image_fill import nearest_fill
 BAND_PX = 4  # silhouette band (input-view pixels) eroded and refilled from inside ...
 BAND_BLUR = 3.0  # ... and blurred there (Gaussian sigma, input-view pixels)
 PRINT_BAND = 0.02  # rows each side whose colours a row of the unseen side takes the median of, fraction of the frame
+ROW_MIN_SHARE = 0.25  # ... a row whose window shows less than this share of the part's median window takes a neighbour's
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
@@ -105,19 +107,23 @@ def skin_like(image: np.ndarray, skin: np.ndarray) -> np.ndarray:
 
 
 def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.ndarray | None = None,
-                share: float = NECKLINE_SHARE, prefer_rows: tuple[int, int] | None = None) -> np.ndarray:
+                share: float = NECKLINE_SHARE, prefer_rows: tuple[int, int] | None = None,
+                min_share: float = ROW_MIN_SHARE) -> np.ndarray:
     """(H, C): per image row, the median colour (:func:`median_colour`) of the ``select``ed pixels within
-    ``band`` rows of it (rows with none take the nearest row that has some); with ``prefer`` (a subset of
-    ``select``) and in the rows ``prefer_rows`` (start, stop; all without), only of those where they are
-    at least ``share`` of the row's."""
+    ``band`` rows of it (rows with none, or with fewer than ``min_share`` of the median row's -- the few
+    pixels of a shirt that crossed forearms leave, a badge or a shadow -- take the nearest row that has
+    enough); with ``prefer`` (a subset of ``select``) and in the rows ``prefer_rows`` (start, stop; all
+    without), only of those where they are at least ``share`` of the row's."""
     h = image.shape[0]
     out = np.full((h, image.shape[2]), np.nan, np.float32)
     counts = select.sum(axis=1)
     preferred = prefer.sum(axis=1) if prefer is not None else None
+    windows = np.convolve(counts, np.ones(2 * band + 1), mode="same")  # each row's window, as counted below
+    floor = min_share * np.median(windows[windows > 0]) if (windows > 0).any() else 0.0
     for y in range(h):
         y0, y1 = max(0, y - band), min(h, y + band + 1)
         n = counts[y0:y1].sum()
-        if n == 0:
+        if n == 0 or n < floor:
             continue
         if (preferred is not None and (prefer_rows is None or prefer_rows[0] <= y < prefer_rows[1])
                 and preferred[y0:y1].sum() >= max(1, share * n)):

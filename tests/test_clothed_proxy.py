@@ -1446,3 +1446,27 @@ def test_long_hair_beside_the_face_hangs_with_the_hair_below_it():
     assert level[beside] == pytest.approx(level[below], abs=0.01) and new_back[beside] > back[beside] + 0.08
     assert new_back[crown] == pytest.approx(back[crown])
     np.testing.assert_allclose((new_mid - new_half)[inner], (mid - half)[inner])
+
+
+def test_a_shirt_mostly_hidden_by_crossed_forearms_keeps_its_colour_at_the_back():
+    """A light-blue shirt (rows 10-89, columns 20-79) whose rows 40-59 the crossed forearms (skin, fitted
+    as arms) cover but for a black badge 8 px wide: the back of the torso in those rows is the shirt,
+    not the badge the few visible pixels show, while rows the shirt shows whole keep their own colour."""
+    size = 100
+    shirt, skin, badge = (np.array(c, np.float32) for c in ((0.6, 0.75, 0.95), (0.85, 0.65, 0.55), (0.05, 0.05, 0.05)))
+    photo = np.full((size, size, 3), 0.9, np.float32)
+    mask = np.zeros((size, size), np.float32)
+    mask[10:90, 20:80] = 1.0
+    photo[10:90, 20:80] = shirt
+    part = np.full((size, size), PARTS.index("torso"))
+    part[40:60, 20:46] = part[40:60, 54:80] = PARTS.index("arms")
+    photo[40:60, 20:46] = photo[40:60, 54:80] = skin
+    photo[40:60, 46:54] = badge
+    back = np.full((size, size), PARTS.index("torso"))
+    out = unseen_side_colours(photo, mask, part, back, None, skin_colour=skin)
+    assert np.allclose(out[50, 50], shirt, atol=0.05)
+    assert np.allclose(out[20, 50], shirt, atol=0.05) and np.allclose(out[80, 30], shirt, atol=0.05)
+    from humanvdm_core.proxy_colours import row_medians
+
+    plain = row_medians(photo, (mask > 0.5) & (part == PARTS.index("torso")), 2, min_share=0.0)
+    assert np.allclose(plain[50], badge, atol=0.05)  # without the rule: the badge's colour
