@@ -118,11 +118,11 @@ def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.nda
     out = np.full((h, image.shape[2]), np.nan, np.float32)
     counts = select.sum(axis=1)
     preferred = prefer.sum(axis=1) if prefer is not None else None
-    windows = np.convolve(counts, np.ones(2 * band + 1), mode="same")  # each row's window, as counted below
+    windows = np.convolve(counts, np.ones(2 * band + 1), mode="same")  # selected pixels within band rows of each
     floor = min_share * np.median(windows[windows > 0]) if (windows > 0).any() else 0.0
     for y in range(h):
         y0, y1 = max(0, y - band), min(h, y + band + 1)
-        n = counts[y0:y1].sum()
+        n = windows[y]
         if n == 0 or n < floor:
             continue
         if (preferred is not None and (prefer_rows is None or prefer_rows[0] <= y < prefer_rows[1])
