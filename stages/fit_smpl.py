@@ -32,7 +32,8 @@ Output ``body``:
   and the model's keypoints (blue), for people.
 - ``report.json``: fit quality per frame and overall, frames used/skipped and why, warnings (every
   per-frame one) and ``warnings_summary``: the same, one line per kind with the frames it concerns
-  (e.g. "keypoints unusable in 6 of 21 frames (0003, 0007, ...)"), plus skipped frames and fit-quality
+  (e.g. "keypoints unusable in 6 of 21 frames (0003, 0007, ...)"; joints hidden only in some frames,
+  as an orbit's side views hide the far arm, make no line), plus skipped frames and fit-quality
   warnings (a keypoint reprojection error over 3 % of the frame; a body partly outside the person's
   masks, or covering little of them: ``silhouette_doubts``; ``mean_iou``, ``mean_outside`` and
   ``mean_cover`` hold the numbers). The summary lines are also logged as warnings, so they reach the run
@@ -117,12 +118,14 @@ def select_frames(azimuth_deg, spec: str) -> list[int]:
 
 
 _FRAME = r"frame (\S+)"
+HIDDEN_MOST = 0.5  # a joint not clearly visible in more than this share of the frames is posed by guesswork
+_HIDDEN = "joints not clearly visible"
 # per-frame warnings (from observe_frames / detect_person): pattern (group 1 the frame, group 2 the joints
 # when counted), the summary's head and tail, whether the joints are counted
 _PER_FRAME = (
     (re.compile(rf"^{_FRAME}: keypoints unusable \((.*)\)$", re.S), "keypoints unusable",
      "; only the silhouette was fitted there", False),
-    (re.compile(rf"^not clearly visible in {_FRAME}: (.*)$", re.S), "joints not clearly visible", "", True),
+    (re.compile(rf"^not clearly visible in {_FRAME}: (.*)$", re.S), _HIDDEN, "", True),
     (re.compile(rf"^part of the body is outside {_FRAME} \(cut off by the frame\): (.*?);.*$", re.S),
      "body cut off by the frame", "", True),
     (re.compile(rf"^{_FRAME} shows (\d+) people.*$", re.S), "more than one person", "; the largest one was used",
@@ -139,7 +142,10 @@ def _frames_text(frames: list[str], total: int) -> str:
 def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str, str] | None = None) -> list[str]:
     """One line per kind of warning instead of one per frame: "keypoints unusable in 6 of 21 frames
     (0003, 0007, ...)"; joint names are counted ("left wrist 5x"); warnings that name no frame are
-    kept once each, in order. ``skipped`` (frame name -> why) adds a line for frames not used at all."""
+    kept once each, in order. ``skipped`` (frame name -> why) adds a line for frames not used at all.
+    Joints not clearly visible make a line only when hidden in more than :data:`HIDDEN_MOST` of the
+    frames (an orbit's side views hide the far arm; the other frames show it); report.json keeps every
+    per-frame warning."""
     kinds: dict[tuple[str, str], tuple[list[str], dict[str, int]]] = {}
     other: dict[str, list[str]] = {}  # message (its frame name replaced by "*") -> frames
     for w in warnings:
@@ -162,6 +168,13 @@ def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str
     if skipped:
         out.append(f"frames skipped (no usable person): {_frames_text(list(skipped), frames_total)}")
     for (head, tail), (frames, items) in kinds.items():
+        if head == _HIDDEN:  # hidden in a few frames of an orbit is normal: the others show the joint
+            most = {k: n for k, n in items.items() if n > HIDDEN_MOST * frames_total}
+            if most:
+                ranked = sorted(most.items(), key=lambda kv: (-kv[1], kv[0]))
+                out.append(f"{head} in most frames, so their pose is a guess: "
+                           + ", ".join(f"{k} (hidden in {n} of {frames_total})" for k, n in ranked))
+            continue
         line = f"{head} in {_frames_text(frames, frames_total)}"
         if items:
             line += ": " + ", ".join(f"{k} {n}x" if n > 1 else k

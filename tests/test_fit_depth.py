@@ -861,11 +861,19 @@ def test_fit_smpl_warning_summary():
         "frames skipped (no usable person): 1 of 21 frames (0001)",
         "keypoints unusable in 7 of 21 frames (0003, 0007, 0010, 0012, 0015, 0017, ...); only the silhouette "
         "was fitted there",
-        "joints not clearly visible in 2 of 21 frames (0004, 0005): left wrist 2x, right ankle",
         "poor silhouette fit: mean IoU 0.70",
         "odd in frame *: 3 of 21 frames (0002, 0008, 0009)",
     ]
     assert summarize_warnings([], 21) == []
+    # a joint hidden in most frames is a guess; one hidden in a few (an orbit's side views) is not
+    hidden = [f"not clearly visible in frame {i:04d}: left wrist" + (", right elbow" if i < 3 else "")
+              for i in range(11)]
+    assert summarize_warnings(hidden, 21) == [
+        "joints not clearly visible in most frames, so their pose is a guess: left wrist (hidden in 11 of 21)"]
+    assert summarize_warnings(hidden[:10], 21) == []
+    assert summarize_warnings(["not clearly visible in frame 0000: left wrist, left elbow"], 1) == [
+        "joints not clearly visible in most frames, so their pose is a guess: left elbow (hidden in 1 of 1), "
+        "left wrist (hidden in 1 of 1)"]
 
 
 def test_stage_params_match_fit_options():
