@@ -13,7 +13,11 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    person detected (:func:`humanvdm_core.perception.detect_person`; :class:`InputError` when there is
    no usable person); a person lying across the photo (on their side or upside down:
    :func:`humanvdm_core.perception.detect.upright_turns`, a photo whose orientation was lost) is stood
-   upright by turning the photo in quarter turns, with a warning. The photo is scaled so the person's bounding box spans ``fill`` of the frame
+   upright by turning the photo in quarter turns, with a warning, when the turned photo's own detection
+   stands upright (:func:`humanvdm_core.perception.detect.stands_upright`); a pose misread across a
+   person who stands upright is not confirmed: the photo stays as it is, and the person's keypoints are
+   detected again within their own box (:func:`~humanvdm_core.perception.detect.person_box`), where the
+   detector reads them standing. The photo is scaled so the person's bounding box spans ``fill`` of the frame
    height (or 0.95 of its width if that is smaller), the box centre is moved to the frame centre,
    and the result is composited over ``background`` through the person mask: a ``size``² RGBA image
    (A = the mask) plus the keypoints in its pixels, and what lies past an edge of the photo that cuts
@@ -202,15 +206,24 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
                        background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> InputView:
     """Load and detect the person, then crop/scale/centre/composite (contract step 1)."""
     from humanvdm_core.perception import detect_person, load_photo
-    from humanvdm_core.perception.detect import upright_turns
+    from humanvdm_core.perception.detect import detect_person_in, person_box, stands_upright, upright_turns
     from humanvdm_core.perception.image import turned
 
     photo = load_photo(resolve_photo(photo_path))
     det = detect_person(photo)
     turns = upright_turns(det)
-    if turns:  # the person lies across the photo: stand them up (a photo whose orientation tag was lost)
-        photo = turned(photo, turns)
-        det = detect_person(photo)
+    if turns:  # the person lies across the photo: stand them up (a photo whose orientation tag was lost) --
+        # if the turned photo's own detection confirms it
+        turned_photo = turned(photo, turns)
+        turned_det = detect_person(turned_photo)
+        if not stands_upright(turned_det):  # a pose misread across a person who stands: their pose again
+            turns = 0                       # from their own box, where the detector reads them standing
+            again = detect_person_in(photo, person_box(det, photo.width, photo.height))
+            if stands_upright(again):
+                det = replace(det, keypoints=again.keypoints, confidences=again.confidences,
+                              world_keypoints=again.world_keypoints, missing=again.missing, outside=again.outside)
+    if turns:
+        photo, det = turned_photo, turned_det
         seen, how = {1: ("on their side, the head to the right", "90 deg counter-clockwise"), 2: ("upside down", "180 deg"),
                      3: ("on their side, the head to the left", "90 deg clockwise")}[turns]
         det.warnings.insert(0, f"{photo.name} shows the person {seen}: the photo is turned {how} so they stand "

@@ -183,6 +183,41 @@ def test_a_photo_turned_on_its_side_or_upside_down_is_stood_upright_and_said_so(
     assert not any("so they stand upright" in w for w in upright.warnings)
 
 
+def test_a_pose_misread_across_an_upright_person_does_not_turn_the_photo(photo, monkeypatch):
+    """The detector reads the upright person as lying with the head to the right (seen on the three.js
+    Soldier in a T-pose turned 35 deg: its keypoints ran across the photo), and the turned photo as lying
+    the other way: the turn is not confirmed, so the photo stays upright, no warning says it was
+    turned, and the keypoints are detected again within the person's own box, where they stand (the
+    Soldier's did there): they are the upright person's. A detection that does stand up in the
+    turned photo still turns it (the test above)."""
+    from humanvdm_core import perception
+    from humanvdm_core.body_prior import prepare_input_view
+
+    upright = prepare_input_view(photo, SIZE)
+    real = perception.detect_person
+
+    def lying(det, head_right: bool):
+        """``det`` with its head to the right (left) of its feet, the keypoints across the photo."""
+        centre = det.keypoints.mean(axis=0)
+        across = (det.keypoints - centre) @ np.array([[0.0, 1.0], [-1.0, 0.0]] if head_right else [[0.0, -1.0], [1.0, 0.0]])
+        det.keypoints = (centre + across).astype(np.float32)
+        return det
+
+    calls = []
+
+    def misread(p, **kw):
+        calls.append(p)
+        return lying(real(p, **kw), head_right=len(calls) == 1)
+
+    monkeypatch.setattr(perception, "detect_person", misread)
+    view = prepare_input_view(photo, SIZE)
+    assert len(calls) == 2  # the turned photo was looked at, and did not confirm the turn
+    assert _iou(view.mask, upright.mask) > 0.99
+    assert not any("so they stand upright" in w for w in view.warnings), view.warnings
+    sure = upright.confidences >= 0.5
+    assert np.abs(view.keypoints - upright.keypoints)[sure].max() < 0.02 * SIZE
+
+
 def test_blank_photo_is_refused(tmp_path):
     from humanvdm_core.io import write_png
 

@@ -659,6 +659,28 @@ def test_an_armoured_figure_keeps_its_arms_out_to_the_side_and_its_head_over_the
     assert abs(ears_forward) < 0.045, ears_forward  # 0.075 without the head's part of the stance term
 
 
+def test_an_upright_figure_the_detector_reads_lying_down_is_not_turned(tmp_path):
+    """The three.js Soldier in its T-pose turned 35 deg (fixture scan, the protocol's 768 px photo): on the
+    whole photo MediaPipe's keypoints run across it, head to the right, and the photo used to be turned
+    a quarter so the orbit showed a figure lying on its side. The turned photo's detection does not
+    confirm it (it reads the figure lying the other way): the photo stays upright, with no warning that
+    it was turned, and the keypoints read within the figure's own box stand upright."""
+    from types import SimpleNamespace
+
+    from humanvdm_core.body_prior import prepare_input_view
+    from humanvdm_core.io import write_png
+    from humanvdm_core.perception import detect_person
+    from humanvdm_core.perception.detect import stands_upright, upright_turns
+
+    rgba, _ = _scan_photo("threejs_soldier", 768, yaw_deg=180.0 + 35.0)  # the Soldier faces -Z
+    photo = tmp_path / "soldier_turned.png"
+    write_png(photo, rgba)
+    assert upright_turns(detect_person(photo)) != 0  # the misreading this test is about
+    view = prepare_input_view(photo, 768)
+    assert not any("so they stand upright" in w for w in view.warnings), view.warnings
+    assert stands_upright(SimpleNamespace(keypoints=view.keypoints, confidences=view.confidences))
+
+
 @pytest.mark.slow
 def test_a_head_bowed_before_the_shoulders_stays_bowed(tmp_path, monkeypatch):
     """A synthetic person standing still with the neck bent 45 deg forward (reading, looking at a

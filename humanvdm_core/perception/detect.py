@@ -117,6 +117,7 @@ FRAME_GAIN = 0.05  # ... and that run counts where it is this much surer (mean C
 UPRIGHT_TOLERANCE = 30.0  # degrees from a quarter turn within which a person lying across the photo counts
 WINDOW_SCALES = (0.5, 1.0 / 3.0)  # nobody found: windows of the short side, then of these shares of it ...
 MIN_WINDOW = 160  # ... at least this many pixels of MediaPipe's copy
+BOX_MARGIN = 0.1  # person_box: the silhouette's box widened by this share of its larger side
 WINDOW_MARGIN = 0.3  # a window's person's silhouette box is widened by this share of its size
 WINDOW_CUT = 0.02  # a window cuts its person where the silhouette covers more than this share of an inner edge
 
@@ -491,24 +492,48 @@ def _person_window(photo: Photo) -> tuple[int, int, int, int] | None:
     return (max(0, int(box[0])), max(0, int(box[1])), min(W, int(np.ceil(box[2]))), min(H, int(np.ceil(box[3]))))
 
 
-def upright_turns(det: Detection) -> int:
-    """The quarter turns counter-clockwise (``np.rot90``'s ``k``, 0..3) that stand the detected person
-    upright in the photo: the line from their feet (the sure ankles, else knees, else hips) to their
-    head (the sure nose, eyes and ears) lies within :data:`UPRIGHT_TOLERANCE` degrees of the photo's
-    right (1), its bottom (2) or its left (3); 0 when it points up, lies in between, or a part is not
-    sure (:data:`MIN_CONFIDENCE`). A phone photo whose orientation tag was lost shows its person on
-    their side."""
+def head_angle_deg(det: Detection) -> float | None:
+    """The angle of the line from the detected person's feet (the sure ankles, else knees, else hips) to
+    their head (the sure nose, eyes and ears), in degrees clockwise from the photo's up (90: the head to
+    the right); None when a part is not sure (:data:`MIN_CONFIDENCE`)."""
     sure = det.confidences >= MIN_CONFIDENCE
     head = [j for j in (0, 1, 2, 3, 4) if sure[j]]
     feet = next(([a, b] for a, b in ((15, 16), (13, 14), (11, 12)) if sure[a] and sure[b]), None)
     if not head or feet is None:
-        return 0
+        return None
     v = det.keypoints[head].mean(axis=0) - det.keypoints[feet].mean(axis=0)
-    angle = float(np.degrees(np.arctan2(v[0], -v[1])))  # 0: head up, 90: head to the right
+    return float(np.degrees(np.arctan2(v[0], -v[1])))
+
+
+def upright_turns(det: Detection) -> int:
+    """The quarter turns counter-clockwise (``np.rot90``'s ``k``, 0..3) that stand the detected person
+    upright in the photo: the line from their feet to their head (:func:`head_angle_deg`) lies within
+    :data:`UPRIGHT_TOLERANCE` degrees of the photo's right (1), its bottom (2) or its left (3); 0 when
+    it points up, lies in between, or a part is not sure. A phone photo whose orientation tag was lost
+    shows its person on their side."""
+    angle = head_angle_deg(det)
+    if angle is None:
+        return 0
     k = int(round(angle / 90.0))
     if k % 4 == 0 or abs(angle - 90.0 * k) > UPRIGHT_TOLERANCE:
         return 0
     return k % 4
+
+
+def person_box(det: Detection, width: int, height: int, margin: float = BOX_MARGIN) -> tuple[int, int, int, int]:
+    """The detected person's silhouette box (``det.bbox``) widened by ``margin`` of its larger side on
+    every side, within a ``width`` x ``height`` photo: (x0, y0, x1, y1) pixels."""
+    x0, y0, x1, y1 = det.bbox
+    pad = margin * max(x1 - x0, y1 - y0)
+    return (max(0, int(x0 - pad)), max(0, int(y0 - pad)), min(width, int(np.ceil(x1 + pad))),
+            min(height, int(np.ceil(y1 + pad))))
+
+
+def stands_upright(det: Detection) -> bool:
+    """The detected person's feet-to-head line (:func:`head_angle_deg`) lies within
+    :data:`UPRIGHT_TOLERANCE` degrees of the photo's up."""
+    angle = head_angle_deg(det)
+    return angle is not None and abs(angle) <= UPRIGHT_TOLERANCE
 
 
 def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, trim: bool = True) -> Detection:
@@ -522,6 +547,17 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, t
         box = _person_window(photo)
         if box is None:
             raise
+    det = detect_person_in(photo, box, refuse_multiple=refuse_multiple, trim=trim)
+    x0, y0, x1, y1 = box
+    det.warnings.append(f"the person fills little of the photo {photo.name} ({det.bbox[3] - det.bbox[1]:.0f} px "
+                        f"tall); found in the part x {x0}-{x1}, y {y0}-{y1} px (people elsewhere in it are not counted)")
+    return det
+
+
+def detect_person_in(photo: Photo, box: tuple[int, int, int, int], *, refuse_multiple: bool = False,
+                     trim: bool = True) -> Detection:
+    """:func:`detect_person` run on the part ``box`` (x0, y0, x1, y1 pixels) of ``photo`` alone, the result
+    in the whole photo's pixels (mask zero outside the box)."""
     x0, y0, x1, y1 = box
     det = _detect(_crop(photo, box), refuse_multiple, trim)
     mask = np.zeros((photo.height, photo.width), np.float32)
@@ -531,8 +567,6 @@ def detect_person(photo: Photo | str | Path, *, refuse_multiple: bool = False, t
     bx0, by0, bx1, by1 = det.bbox
     det.mask, det.untrimmed, det.bbox = mask, untrimmed, (bx0 + x0, by0 + y0, bx1 + x0, by1 + y0)
     det.keypoints = (det.keypoints + np.array([x0, y0], np.float32)).astype(np.float32)
-    det.warnings.append(f"the person fills little of the photo {photo.name} ({by1 - by0:.0f} px tall); found in "
-                        f"the part x {x0}-{x1}, y {y0}-{y1} px (people elsewhere in it are not counted)")
     return det
 
 
