@@ -715,22 +715,25 @@ def test_a_head_bowed_before_the_shoulders_stays_bowed(tmp_path, monkeypatch):
 
 def test_the_stance_term_holds_the_head_over_the_shoulders_only_when_asked():
     """_Problem.stance_term on hand-made joints (straight legs, the feet below the hips): the ears'
-    centre 7 cm before the shoulders costs with ``head`` and nothing without; 3 cm before costs
-    nothing either way."""
-    from humanvdm_core.body.fit import STANCE_HEAD_FREE, _Problem
+    centre 7 cm before the shoulders, or 3 cm behind them, costs with ``head`` and nothing without;
+    2 cm before (where people hold it) costs nothing either way. Before and behind are the body's own
+    (its left shoulder x its spine), not the camera's: the same body turned to face away costs the same."""
+    from humanvdm_core.body.fit import STANCE_HEAD_AHEAD, STANCE_HEAD_FREE, _Problem
 
     c = torch.zeros(17, 3, dtype=torch.float64)
     c[5], c[6] = torch.tensor([0.2, 1.45, 0.0]), torch.tensor([-0.2, 1.45, 0.0])  # shoulders
     c[11], c[12] = torch.tensor([0.1, 0.95, 0.0]), torch.tensor([-0.1, 0.95, 0.0])  # hips
     c[13], c[14] = c[11] - torch.tensor([0.0, 0.45, 0.0]), c[12] - torch.tensor([0.0, 0.45, 0.0])  # knees
     c[15], c[16] = c[13] - torch.tensor([0.0, 0.45, 0.0]), c[14] - torch.tensor([0.0, 0.45, 0.0])  # ankles
-    forward = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
-    for ahead, costs in ((0.07, True), (0.03, False)):
+    forward = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)  # the camera looks at the body's front
+    away = torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))  # turned 180 deg about +Y
+    for ahead, costs in ((0.07, True), (0.02, False), (-0.03, True)):
         c[3], c[4] = torch.tensor([0.07, 1.6, ahead]), torch.tensor([-0.07, 1.6, ahead])  # ears
         assert float(_Problem.stance_term(c, forward)) == 0.0
         with_head = float(_Problem.stance_term(c, forward, head=True))
         assert (with_head > 0.0) == costs, (ahead, with_head)
-    assert STANCE_HEAD_FREE < 0.07
+        assert float(_Problem.stance_term(c @ away, forward, head=True)) == pytest.approx(with_head)
+    assert STANCE_HEAD_AHEAD - STANCE_HEAD_FREE <= 0.0 and STANCE_HEAD_AHEAD + STANCE_HEAD_FREE < 0.07
 
 
 def test_onto_the_head_moves_only_wrists_on_the_head():

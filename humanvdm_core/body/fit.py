@@ -83,12 +83,15 @@ Contract:
     every standing render; on real people in trousers its 2D shins come out a fifth short, so the
     2D keypoints alone bend them too) and the fit put their feet 0.1-0.2 m behind the hips. From the
     second half of phase 2 on, if the fitted torso is then within :data:`STANCE_HEAD_UPRIGHT_DEG` of
-    upright, the ears' centre more than :data:`STANCE_HEAD_FREE` before or behind the shoulders' (along
-    the torso's forward) costs too: where the photo's neck is short (a hood, a helmet, a high collar,
+    upright, the ears' centre more than :data:`STANCE_HEAD_FREE` away from :data:`STANCE_HEAD_AHEAD`
+    before the shoulders' (along the torso's own forward, its left shoulder x its spine, whichever way
+    it faces the camera) costs too: where people hold it (on the synthetic subjects the truth's ears
+    stand 2-4 cm before the shoulders). Where the photo's neck is short (a hood, a helmet, a high collar,
     raised shoulders hide it) the fit tilted the head towards the camera to foreshorten it (the three.js
-    Soldier's ears 7.5 cm before its shoulders; on the synthetic subjects the truth's stand 2-4 cm before
-    them). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
-    a bun, a helmet: 2.4-3.5 cm before the shoulders, near the truth's) back to 0; once the head has
+    Soldier's ears 7.5 cm before its shoulders); where hands are held before the face or the chest it
+    held the head 2 cm behind the shoulders (hands on the head, a hand at the face, clasped or crossed
+    arms). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
+    a bun, a helmet: 2.4-3.5 cm before the shoulders, near the truth's) back; once the head has
     settled, such heads are left alone. A bow carries the head forward with the chest: a bowing torso
     is left to its head, and so is a head the photo's face shows bowed (``head_over_shoulders`` off:
     :attr:`~humanvdm_core.perception.facing.Facing.bowed`).
@@ -196,7 +199,8 @@ SPINE_PRIOR_WEIGHT = 1.0  # default FitOptions.spine_prior_weight
 STANCE_KNEE_FREE_DEG = 3.0  # a knee bent less than this costs nothing ..
 STANCE_FEET_FREE = 0.01  # .. nor ankles this close (world units) to below the hips along the view ..
 STANCE_FEET_UNIT = 0.05  # .. farther, the excess counts in units of this (the head's too) ..
-STANCE_HEAD_FREE = 0.04  # .. nor the ears' centre this close to above the shoulders' (second half of phase 2, ..
+STANCE_HEAD_AHEAD = 0.02  # .. nor the ears' centre this far before the shoulders' ..
+STANCE_HEAD_FREE = 0.02  # .. give or take this (second half of phase 2, ..
 STANCE_HEAD_UPRIGHT_DEG = 10.0  # .. a torso this close to upright then)
 
 
@@ -642,12 +646,11 @@ class _Problem:
         offset = ((ankles.mean(0) - hips.mean(0)) * forward).sum()
         term = (torch.relu(bends - np.radians(STANCE_KNEE_FREE_DEG)).pow(2).sum()
                 + (torch.relu(offset.abs() - STANCE_FEET_FREE) / STANCE_FEET_UNIT).pow(2))
-        if head:  # along the torso's own forward: a bow carries the head with it
-            spine = _spine(coco17)
-            ahead = forward - (forward * spine).sum() * spine
+        if head:  # along the torso's own forward (its left shoulder x its spine): a bow carries the head with it
+            ahead = torch.linalg.cross(coco17[5] - coco17[6], _spine(coco17), dim=-1)
             ahead = ahead / ahead.norm().clamp(min=1e-9)
             ears = ((coco17[3] + coco17[4] - coco17[5] - coco17[6]) / 2 * ahead).sum()
-            term = term + (torch.relu(ears.abs() - STANCE_HEAD_FREE) / STANCE_FEET_UNIT).pow(2)
+            term = term + (torch.relu((ears - STANCE_HEAD_AHEAD).abs() - STANCE_HEAD_FREE) / STANCE_FEET_UNIT).pow(2)
         return term
 
     def silhouette_terms(self, vertices: torch.Tensor, cover: bool) -> tuple[torch.Tensor, torch.Tensor]:
