@@ -85,8 +85,9 @@ Contract:
     second half of phase 2 on, if the fitted torso is then within :data:`STANCE_HEAD_UPRIGHT_DEG` of
     upright, the ears' centre more than :data:`STANCE_HEAD_FREE` away from :data:`STANCE_HEAD_AHEAD`
     before the shoulders' (along the torso's own forward, its left shoulder x its spine, whichever way
-    it faces the camera) costs too: where people hold it (on the synthetic subjects the truth's ears
-    stand 2-4 cm before the shoulders). Where the photo's neck is short (a hood, a helmet, a high collar,
+    it faces the camera) costs too, so the ears stand between 2 cm behind and 3 cm before them (on the
+    synthetic subjects the truth's stand 2-4 cm before; the three.js Soldier's helmet sits further back
+    than a head: a zone centred on people's 3 cm cost it 0.6 dB). Where the photo's neck is short (a hood, a helmet, a high collar,
     raised shoulders hide it) the fit tilted the head towards the camera to foreshorten it (the three.js
     Soldier's ears 7.5 cm before its shoulders); where hands are held before the face or the chest it
     held the head 2 cm behind the shoulders (hands on the head, a hand at the face, clasped or crossed
@@ -199,8 +200,8 @@ SPINE_PRIOR_WEIGHT = 1.0  # default FitOptions.spine_prior_weight
 STANCE_KNEE_FREE_DEG = 3.0  # a knee bent less than this costs nothing ..
 STANCE_FEET_FREE = 0.01  # .. nor ankles this close (world units) to below the hips along the view ..
 STANCE_FEET_UNIT = 0.05  # .. farther, the excess counts in units of this (the head's too) ..
-STANCE_HEAD_AHEAD = 0.02  # .. nor the ears' centre this far before the shoulders' ..
-STANCE_HEAD_FREE = 0.02  # .. give or take this (second half of phase 2, ..
+STANCE_HEAD_AHEAD = 0.005  # .. nor the ears' centre this far before the shoulders' ..
+STANCE_HEAD_FREE = 0.025  # .. give or take this (second half of phase 2, ..
 STANCE_HEAD_UPRIGHT_DEG = 10.0  # .. a torso this close to upright then)
 
 
