@@ -220,8 +220,9 @@ def prepare_input_view(photo_path: str | Path, size: int, fill: float = DEFAULT_
             turns = 0                       # from their own box, where the detector reads them standing
             again = detect_person_in(photo, person_box(det, photo.width, photo.height))
             if stands_upright(again):
-                det = replace(det, keypoints=again.keypoints, confidences=again.confidences,
-                              world_keypoints=again.world_keypoints, missing=again.missing, outside=again.outside)
+                det = replace(det, keypoints=again.keypoints, confidences=again.confidences,  # the mask stays
+                              world_keypoints=again.world_keypoints, missing=again.missing, outside=again.outside,
+                              num_people=again.num_people, warnings=again.warnings)  # as read in the box
     if turns:
         photo, det = turned_photo, turned_det
         seen, how = {1: ("on their side, the head to the right", "90 deg counter-clockwise"), 2: ("upside down", "180 deg"),
