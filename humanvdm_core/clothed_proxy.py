@@ -104,7 +104,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from humanvdm_core.body.parts import PARTS, vertex_parts, vertex_sides
+from humanvdm_core.body.parts import PARTS, face_vertices, vertex_parts, vertex_sides
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.image_fill import CROSS, harmonic_extension, nearest_fill, outside_of, row_nearest
 from humanvdm_core.proxy_colours import distinct_hair_curtain, face_colour, refill_band, unseen_side_colours
@@ -121,6 +121,7 @@ HAIR_FADE = 0.1  # ... fading out over this fraction of the grid below the curta
 HAIR_BELOW_CHIN = 0.03  # a curtain column reaching this fraction of the grid below the chin hangs beside the face too
 SKIN_INFLUENCES = 4
 LABEL_SMOOTH = 1.0  # grid px over which the body parts' borders are smoothed for the texture (smooth_labels)
+FACE_SMOOTH = 2.0  # grid px over which the border of the face and the hair on the unseen side is blended
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
@@ -193,10 +194,11 @@ def _face_mode(values: np.ndarray) -> np.ndarray:
 
 
 def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera: Cameras,
-              sides: np.ndarray | None = None) -> dict[str, np.ndarray]:
+              sides: np.ndarray | None = None, face: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per pixel of ``camera`` (one camera): the body's nearest and farthest depth, its coverage, the
     part of the nearest and of the farthest surface (-1 where empty), from ``sides`` (V,) in
-    {-1, 0, 1} their sides (0 where empty or without ``sides``), and the same depths of the body
+    {-1, 0, 1} their sides (0 where empty or without ``sides``), from ``face`` (V,) bool whether the
+    farthest surface is the face (``back_face``; False without ``face``), and the same depths of the body
     without its arms and hands (``trunk_*``: what lies behind an arm held before the body)."""
     from humanvdm_core.render import render_views
 
@@ -205,6 +207,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     code = np.repeat(((_face_mode(parts[faces]) + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
     if sides is not None:
         code[:, 1] = (_face_mode(np.asarray(sides)[faces]) + 1.5) / 3.0
+    code[:, 2] = 0.25 + 0.5 * (_face_mode(np.asarray(face, np.int64)[faces]) if face is not None else 0)
     code = np.repeat(code, 3, axis=0)
     flat = np.arange(3 * len(faces)).reshape(-1, 3)
     corners = np.asarray(vertices)[faces].reshape(-1, 3)
@@ -247,7 +250,8 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     trunk_back = np.where(within(trunk_back), trunk_back, 0.0)
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
-            "back_side": side_map(far), "trunk_front": trunk_front, "trunk_back": trunk_back}
+            "back_side": side_map(far), "back_face": (far.depth[0] > 0) & (far.rgba[0, ..., 2] > 0.5),
+            "trunk_front": trunk_front, "trunk_back": trunk_back}
 
 
 def grid_faces(index: np.ndarray) -> np.ndarray:
@@ -586,7 +590,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
                         legs_hidden: bool = False, profile: bool = False,
-                        placed_arms: tuple[int, ...] = ()) -> ClothedProxy:
+                        placed_arms: tuple[int, ...] = (), coco17: np.ndarray | None = None) -> ClothedProxy:
     """The clothed proxy of a person (see the module docstring).
 
     ``vertices`` (V, 3) / ``faces`` / ``skinning_weights`` (V, J) / ``joint_names``: the fitted body in
@@ -596,13 +600,16 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     photo does not show the ankles (a long dress or coat), so the fitted legs' depth is a guess; ``profile``:
     the photo shows the person from the side, so the unseen side of the head mirrors the seen one;
     ``placed_arms``: the sides (+1 left, -1 right, the person's own) of arms whose depth a contact fixes (a
-    hand on the head): they keep the fitted depth, no :data:`ARM_REACH` limit."""
+    hand on the head): they keep the fitted depth, no :data:`ARM_REACH` limit; ``coco17`` (17, 3): the
+    fitted body's COCO joints in the world, which tell its face from the back of its head (contract
+    step 8)."""
     size = camera.width
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
     parts = vertex_parts(skinning_weights, joint_names)
+    face = face_vertices(vertices, parts, coco17) if coco17 is not None else None
     maps = body_maps(np.asarray(vertices, np.float32), np.asarray(faces, np.int32), parts, cam_g,
-                     vertex_sides(skinning_weights, joint_names))
+                     vertex_sides(skinning_weights, joint_names), face)
 
     person_g = cv2.resize(mask.astype(np.float32), (g, g), interpolation=cv2.INTER_AREA) > 0.5
     domain = cv2.dilate(person_g.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
@@ -746,6 +753,9 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bs = cv2.resize(maps["back_side"].astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
     fs = nearest_fill(fs, known).astype(np.int64) if known.any() else np.zeros_like(fs, np.int64)
     bs = np.where(bknown, bs, fs).astype(np.int64)
+    # the face's share of the farthest surface, blurred like the parts' borders: the cheek fades into the hair
+    back_face = np.clip(cv2.resize(cv2.GaussianBlur(maps["back_face"].astype(np.float32), (0, 0), FACE_SMOOTH),
+                                   (size, size), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
     loose_full = cv2.resize((domain & ~body).astype(np.uint8), (size, size),
                             interpolation=cv2.INTER_NEAREST).astype(bool)  # the mask outside the body
     # each point of the unseen side takes its part's colours of the photo's row at its own world height (see
@@ -757,7 +767,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     far_rows = cv2.resize(((unseen_rows(near_d, far_d, cam_g, domain) + 0.5) * to_full - 0.5).astype(np.float32),
                           (size, size), interpolation=cv2.INTER_LINEAR)
     back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile,
-                                   source_rows=far_rows)
+                                   source_rows=far_rows, back_face=back_face)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = px * to_full / size
     v = 1.0 - py * to_full / size

@@ -181,7 +181,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
                         back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
                         loose: np.ndarray | None = None, profile: bool = False,
-                        source_rows: np.ndarray | None = None) -> np.ndarray:
+                        source_rows: np.ndarray | None = None, back_face: np.ndarray | None = None) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -210,7 +210,10 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     which the photo shows the world height of the unseen side's point there,
     :func:`humanvdm_core.clothed_proxy.unseen_rows`) the torso's and the legs' colours (a hem, a belt, a
     waistline) and long hair come from that row (fractional: the two nearest blended), not the pixel's
-    own; the arms, the hands, the head and what lies outside the body keep their own rows."""
+    own; the arms, the hands, the head and what lies outside the body keep their own rows. With
+    ``back_face`` (H, W float in [0, 1]: how much the farthest surface is the face, the head's front, as
+    where a person turned from the camera shows the far cheek) and ``skin_colour``, the head there blends
+    from ``head_colour`` to the skin's colour by it."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
@@ -282,6 +285,9 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
             continue
         if PARTS[p] == "head" and head_colour is not None:
             out[want] = head_colour
+            if back_face is not None and skin_colour is not None:  # the far cheek of a person turned away
+                w = back_face[want][:, None]
+                out[want] = (1.0 - w) * np.asarray(head_colour, np.float32) + w * np.asarray(skin_colour, np.float32)
         elif PARTS[p] == "hands":
             out[want] = nearest_fill(photo, source)[want]  # skin keeps its own colour
         else:

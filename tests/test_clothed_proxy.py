@@ -116,6 +116,37 @@ def test_a_head_in_profile_keeps_its_own_colours_on_the_far_side():
     assert np.allclose(profile[40, 30], facing[40, 30])  # below the head nothing changes
 
 
+def test_the_far_cheek_of_a_person_turned_away_is_skin_not_hair():
+    """A head turned from the camera: where its farthest surface is the face (the far cheek, ``back_face``
+    1) the unseen side takes the face's skin, where it is the back of the head (0) the hair, and half way
+    (the blended border) half of each; without ``back_face`` it is all hair as before. face_vertices
+    marks the head's vertices in front of the ears' centre along the line to the nose."""
+    from humanvdm_core.body.parts import face_vertices
+
+    size = 60
+    hair, skin = np.array((0.25, 0.15, 0.1), np.float32), np.array((0.85, 0.65, 0.5), np.float32)
+    photo = np.full((size, size, 3), 0.9, np.float32)
+    photo[5:25, 20:40] = skin
+    photo[25:55, 20:40] = (0.2, 0.3, 0.7)  # the shirt
+    mask = np.zeros((size, size), np.float32)
+    mask[5:55, 20:40] = 1.0
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:25] = PARTS.index("head")
+    cheek = np.zeros((size, size), np.float32)
+    cheek[5:25, 20:27], cheek[5:25, 27] = 1.0, 0.5
+    out = unseen_side_colours(photo, mask, part, part, hair, skin_colour=skin, back_face=cheek)
+    assert np.allclose(out[15, 22], skin, atol=0.02) and np.allclose(out[15, 35], hair, atol=0.02)
+    assert np.allclose(out[15, 27], 0.5 * (skin + hair), atol=0.02)
+    assert np.allclose(out[40, 30], unseen_side_colours(photo, mask, part, part, hair)[40, 30])
+    assert np.allclose(unseen_side_colours(photo, mask, part, part, hair, skin_colour=skin)[15, 22], hair, atol=0.02)
+
+    coco = np.zeros((17, 3))
+    coco[0], coco[3], coco[4] = (0.0, 1.6, 0.1), (0.07, 1.6, 0.0), (-0.07, 1.6, 0.0)  # nose 10 cm before the ears
+    v = np.array([[0.0, 1.6, 0.08], [0.0, 1.65, -0.08], [0.05, 1.6, 0.02], [0.0, 1.0, 0.1]])
+    parts = np.array([PARTS.index("head")] * 3 + [PARTS.index("torso")])
+    assert face_vertices(v, parts, coco).tolist() == [True, False, True, False]
+
+
 def test_what_one_arm_holds_stays_off_the_other_arms_back():
     """Both arms in a light sleeve; the right one's visible pixels covered by a dark held folder over
     rows 20-60. Coloured per side, the left arm's back keeps the sleeve's colour (one median over both

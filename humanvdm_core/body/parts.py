@@ -4,7 +4,8 @@
 one of whose name fragments its name holds (Anny's and SMPL/SMPL-X's rigs; the torso otherwise), and a
 joint's side is the body's left (+1: Anny's ``.L``, SMPL's ``left_``), right (-1) or the midline (0).
 A vertex takes the part that holds the largest sum of its skinning weights, and the side that holds
-more than half of them (else the midline).
+more than half of them (else the midline); the head's vertices in front of its ears are its face
+(:func:`face_vertices`).
 """
 
 from __future__ import annotations
@@ -64,3 +65,16 @@ def vertex_sides(skinning_weights: np.ndarray, joint_names: list[str]) -> np.nda
     left = skinning_weights[:, side == 1].sum(axis=1)
     right = skinning_weights[:, side == -1].sum(axis=1)
     return np.where(left > 0.5, 1, np.where(right > 0.5, -1, 0)).astype(np.int64)
+
+
+def face_vertices(vertices: np.ndarray, parts: np.ndarray, coco17: np.ndarray) -> np.ndarray:
+    """(V,) bool: the head's vertices (``parts``, :data:`PARTS`) in front of its ears, along the line from
+    the ears' centre to the nose of ``coco17`` (17, 3, COCO joints in the vertices' space): the face and
+    the front of the neck's top, not the back of the head."""
+    ears = 0.5 * (np.asarray(coco17[3], np.float64) + coco17[4])
+    forward = np.asarray(coco17[0], np.float64) - ears
+    norm = float(np.linalg.norm(forward))
+    if norm < 1e-9:
+        return np.zeros(len(vertices), bool)
+    ahead = (np.asarray(vertices, np.float64) - ears) @ (forward / norm)
+    return (parts == PARTS.index("head")) & (ahead > 0.0)
