@@ -81,8 +81,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
 8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``): the photo on the
    front, its silhouette band refilled from inside; on the back (the unseen side) per body part and
    row the median colour of what the photo shows of that part, without prints, logos, held objects or
-   the skin of arms held before it, hands in their own colour and the head's back in the hair's
-   (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
+   the skin of arms held before it, hands in their own colour and the head's back in the hair's, where
+   its farthest surface is the face (the far cheek of a person turned from the camera: the body's head
+   before its ears, :func:`~humanvdm_core.body.parts.face_vertices`) in the face's skin, blended over
+   :data:`FACE_SMOOTH` (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
    at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
    above, the back sheet lies lower than the front along each ray. The body parts' map is resized from
    the grid to the texture with smooth borders (:func:`smooth_labels`), so the hairline at the back of
