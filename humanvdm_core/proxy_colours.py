@@ -284,10 +284,11 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         if not want.any() or source.sum() < 4:
             continue
         if PARTS[p] == "head" and head_colour is not None:
-            out[want] = head_colour
             if back_face is not None and skin_colour is not None:  # the far cheek of a person turned away
                 w = back_face[want][:, None]
                 out[want] = (1.0 - w) * np.asarray(head_colour, np.float32) + w * np.asarray(skin_colour, np.float32)
+            else:
+                out[want] = head_colour
         elif PARTS[p] == "hands":
             out[want] = nearest_fill(photo, source)[want]  # skin keeps its own colour
         else:

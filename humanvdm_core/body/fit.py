@@ -87,11 +87,11 @@ Contract:
     before the shoulders' (along the torso's own forward, its left shoulder x its spine, whichever way
     it faces the camera) costs too, so the ears stand between 2 cm behind and 3 cm before them (on the
     synthetic subjects the truth's stand 2-4 cm before; the three.js Soldier's helmet sits further back
-    than a head: a zone centred on people's 3 cm cost it 0.6 dB). Where the photo's neck is short (a hood, a helmet, a high collar,
-    raised shoulders hide it) the fit tilted the head towards the camera to foreshorten it (the three.js
-    Soldier's ears 7.5 cm before its shoulders); where hands are held before the face or the chest it
-    held the head 2 cm behind the shoulders (hands on the head, a hand at the face, clasped or crossed
-    arms). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
+    than a head: a zone centred on people's 3 cm cost it 0.6 dB). Where the photo's neck is short (a
+    hood, a helmet, a high collar, raised shoulders hide it) the fit tilted the head towards the camera
+    to foreshorten it (the three.js Soldier's ears 7.5 cm before its shoulders); where hands are held
+    before the face or the chest it held the head 2 cm behind the shoulders (hands on the head, a hand
+    at the face, clasped or crossed arms). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
     a bun, a helmet: 2.4-3.5 cm before the shoulders, near the truth's) back; once the head has
     settled, such heads are left alone. A bow carries the head forward with the chest: a bowing torso
     is left to its head, and so is a head the photo's face shows bowed (``head_over_shoulders`` off:
