@@ -608,7 +608,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
                                       view.rgba[..., :3], view.mask, head_colour=hair,
                                       legs_hidden=_ankles_hidden(view.confidences), profile=turn >= PROFILE_DEG,
                                       placed_arms=tuple(1 if side == "left" else -1 for side in on_head),
-                                      coco17=coco17)
+                                      coco17=coco17, facing_away=facing.away)
         lg.info("clothed proxy: %d vertices, %d faces; the body covers %.0f%% of the silhouette",
                 len(clothed.mesh.vertices), len(clothed.mesh.faces), 100 * clothed.body_fraction)
         if clothed.body_fraction < LOOSE_FRACTION:

@@ -109,7 +109,14 @@ import numpy as np
 from humanvdm_core.body.parts import PARTS, face_vertices, vertex_parts, vertex_sides
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.image_fill import CROSS, harmonic_extension, nearest_fill, outside_of, row_nearest
-from humanvdm_core.proxy_colours import distinct_hair_curtain, face_colour, refill_band, unseen_side_colours
+from humanvdm_core.proxy_colours import (
+    any_skin,
+    distinct_hair_curtain,
+    face_colour,
+    median_colour,
+    refill_band,
+    unseen_side_colours,
+)
 from humanvdm_core.scans import TexturedMesh
 
 SCHEMA = "humanvdm.clothed_proxy"
@@ -124,6 +131,7 @@ HAIR_BELOW_CHIN = 0.03  # a curtain column reaching this fraction of the grid be
 SKIN_INFLUENCES = 4
 LABEL_SMOOTH = 1.0  # grid px over which the body parts' borders are smoothed for the texture (smooth_labels)
 FACE_SMOOTH = 2.0  # grid px over which the border of the face and the hair on the unseen side is blended
+MIN_SKIN_PX = 32  # a photo from behind: the skin pixels needed to take the face's colour from them
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
@@ -592,7 +600,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
                         joint_names: list[str], camera: Cameras, rgb: np.ndarray, mask: np.ndarray,
                         head_colour: np.ndarray | None = None, grid: int = GRID,
                         legs_hidden: bool = False, profile: bool = False,
-                        placed_arms: tuple[int, ...] = (), coco17: np.ndarray | None = None) -> ClothedProxy:
+                        placed_arms: tuple[int, ...] = (), coco17: np.ndarray | None = None,
+                        facing_away: bool = False) -> ClothedProxy:
     """The clothed proxy of a person (see the module docstring).
 
     ``vertices`` (V, 3) / ``faces`` / ``skinning_weights`` (V, J) / ``joint_names``: the fitted body in
@@ -604,7 +613,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     ``placed_arms``: the sides (+1 left, -1 right, the person's own) of arms whose depth a contact fixes (a
     hand on the head): they keep the fitted depth, no :data:`ARM_REACH` limit; ``coco17`` (17, 3): the
     fitted body's COCO joints in the world, which tell its face from the back of its head (contract
-    step 8)."""
+    step 8); ``facing_away``: the photo shows the person's back, so the unseen side of the head is the
+    face (the hands' skin colour, no hair curtain over it)."""
     size = camera.width
     g = max(16, min(grid, size))
     cam_g = camera.scaled(g, g) if g != size else camera
@@ -748,6 +758,15 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bknown = bp >= 0
     bp = np.where(bknown, bp, fp).astype(np.int64)
     skin = face_colour(front_tex, mask, fp, head_colour)  # before the head's own colour stands in for hair
+    face_skin = skin
+    if facing_away:  # the photo shows no face: its skin is the hands' skin (else the bare arms')
+        person, skin_px = mask > 0.5, any_skin(front_tex)
+        face_skin = None
+        for part in ("hands", "arms"):
+            shown = person & skin_px & (fp == PARTS.index(part))
+            if shown.sum() >= MIN_SKIN_PX:
+                face_skin = median_colour(front_tex[shown])
+                break
     if head_colour is None:
         head_pixels = (fp == PARTS.index("head")) & (mask > 0.5)
         head_colour = np.median(front_tex[head_pixels], axis=0) if head_pixels.any() else None
@@ -769,7 +788,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     far_rows = cv2.resize(((unseen_rows(near_d, far_d, cam_g, domain) + 0.5) * to_full - 0.5).astype(np.float32),
                           (size, size), interpolation=cv2.INTER_LINEAR)
     back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile,
-                                   source_rows=far_rows, back_face=back_face)
+                                   source_rows=far_rows, back_face=back_face, face_skin=face_skin,
+                                   hair_curtain=not facing_away)
     texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
     u = px * to_full / size
     v = 1.0 - py * to_full / size

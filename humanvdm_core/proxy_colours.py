@@ -52,6 +52,8 @@ ROW_MIN_SHARE = 0.25  # ... a row whose window shows less than this share of the
 HAIR_DISTANCE = 0.25  # RGB distance within which a pixel counts as the hair's colour
 SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel counts as the face's skin ...
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
+SKIN_CR = (135, 180)  # any_skin: the YCrCb Cr range of skin of any tone (8 bits) ...
+SKIN_CB = (80, 135)  # ... and its Cb range
 ARM_SKIN_REACH = 0.03  # skin within this fraction of the frame of the fitted arms and hands is theirs (see below)
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
 NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
@@ -104,6 +106,15 @@ def skin_like(image: np.ndarray, skin: np.ndarray) -> np.ndarray:
     chroma = np.linalg.norm(image / total - ref / (ref.sum() + 1e-3), axis=2)
     ratio = image.mean(axis=2) / max(float(ref.mean()), 1e-3)
     return (chroma < SKIN_CHROMA) & (ratio > SKIN_BRIGHTNESS[0]) & (ratio < SKIN_BRIGHTNESS[1])
+
+
+def any_skin(image: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels of ``image`` (RGB float in [0, 1]) whose chroma lies in the range of human skin
+    of any tone (:data:`SKIN_CR`, :data:`SKIN_CB` in YCrCb, 8 bits), for a photo that shows no face to
+    take the skin's colour from."""
+    ycc = cv2.cvtColor((np.clip(image, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2YCrCb)
+    cr, cb = ycc[..., 1], ycc[..., 2]
+    return (cr >= SKIN_CR[0]) & (cr <= SKIN_CR[1]) & (cb >= SKIN_CB[0]) & (cb <= SKIN_CB[1])
 
 
 def row_medians(image: np.ndarray, select: np.ndarray, band: int, prefer: np.ndarray | None = None,
@@ -181,7 +192,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
                         head_colour: np.ndarray | None, front_side: np.ndarray | None = None,
                         back_side: np.ndarray | None = None, skin_colour: np.ndarray | None = None,
                         loose: np.ndarray | None = None, profile: bool = False,
-                        source_rows: np.ndarray | None = None, back_face: np.ndarray | None = None) -> np.ndarray:
+                        source_rows: np.ndarray | None = None, back_face: np.ndarray | None = None,
+                        face_skin: np.ndarray | None = None, hair_curtain: bool = True) -> np.ndarray:
     """The colour of the unseen side per input-view pixel (contract step 8, "back"): per body part, the
     median colour of that part's visible pixels at the same height (:data:`PRINT_BAND` of the frame):
     garments keep their colours from top to bottom, while prints, logos, ties, buttons and held
@@ -212,8 +224,10 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     waistline) and long hair come from that row (fractional: the two nearest blended), not the pixel's
     own; the arms, the hands, the head and what lies outside the body keep their own rows. With
     ``back_face`` (H, W float in [0, 1]: how much the farthest surface is the face, the head's front, as
-    where a person turned from the camera shows the far cheek) and ``skin_colour``, the head there blends
-    from ``head_colour`` to the skin's colour by it."""
+    where a person turned from the camera shows the far cheek) and ``skin_colour`` (or ``face_skin``, the
+    face's colour where the photo shows no face), the head there blends from ``head_colour`` to the skin's
+    colour by it. ``hair_curtain`` False (a photo from behind: the hair it shows hangs on its own side)
+    paints no hair curtain on the unseen side."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
     person = mask > 0.5
@@ -284,9 +298,10 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         if not want.any() or source.sum() < 4:
             continue
         if PARTS[p] == "head" and head_colour is not None:
-            if back_face is not None and skin_colour is not None:  # the far cheek of a person turned away
+            face = face_skin if face_skin is not None else skin_colour
+            if back_face is not None and face is not None:  # the far cheek of a person turned away
                 w = back_face[want][:, None]
-                out[want] = (1.0 - w) * np.asarray(head_colour, np.float32) + w * np.asarray(skin_colour, np.float32)
+                out[want] = (1.0 - w) * np.asarray(head_colour, np.float32) + w * np.asarray(face, np.float32)
             else:
                 out[want] = head_colour
         elif PARTS[p] == "hands":
@@ -320,7 +335,7 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     for region in regions:
         per_row = row_medians(photo, region, band)
         out[region] = at_rows(per_row, region, False)  # outside the body: its own rows
-    if head_colour is not None:
+    if head_colour is not None and hair_curtain:
         hair = distinct_hair_curtain(photo, mask, front_part, np.asarray(head_colour, np.float32))
         if source_rows is not None:  # long hair hangs as far down the back as the photo shows it at the sides
             r = np.clip(np.rint(source_rows), 0, size - 1).astype(np.int64)

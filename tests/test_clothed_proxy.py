@@ -142,9 +142,39 @@ def test_the_far_cheek_of_a_person_turned_away_is_skin_not_hair():
 
     coco = np.zeros((17, 3))
     coco[0], coco[3], coco[4] = (0.0, 1.6, 0.1), (0.07, 1.6, 0.0), (-0.07, 1.6, 0.0)  # nose 10 cm before the ears
-    v = np.array([[0.0, 1.6, 0.08], [0.0, 1.65, -0.08], [0.05, 1.6, 0.02], [0.0, 1.0, 0.1]])
-    parts = np.array([PARTS.index("head")] * 3 + [PARTS.index("torso")])
-    assert face_vertices(v, parts, coco).tolist() == [True, False, True, False]
+    coco[5], coco[6] = (0.18, 1.4, 0.0), (-0.18, 1.4, 0.0)  # shoulders
+    v = np.array([[0.0, 1.6, 0.08], [0.0, 1.65, -0.08], [0.05, 1.6, 0.02], [0.0, 1.0, 0.1], [0.0, 1.68, 0.06]])
+    parts = np.array([PARTS.index("head")] * 3 + [PARTS.index("torso"), PARTS.index("head")])
+    # the face, the back of the head, the cheek, not the head, the forehead's hair 8 cm above the ears
+    assert face_vertices(v, parts, coco).tolist() == [True, False, True, False, False]
+
+
+def test_a_photo_from_behind_shows_a_face_of_the_hands_skin_under_the_hair():
+    """The photo shows the back of a head (all hair) and a hand (skin, beside something dark it holds):
+    where the unseen side is the face, it takes the hand's skin colour (``face_skin``), not the hair's,
+    and no hair curtain is painted over it (``hair_curtain`` off); any_skin tells skin of any tone from a
+    grey folder, a white shirt, a blue sky and green grass (not from brown hair, whose chroma is skin's:
+    it is asked of the hands' and arms' pixels only)."""
+    from humanvdm_core.proxy_colours import any_skin
+
+    size = 60
+    hair, skin = np.array((0.2, 0.12, 0.08), np.float32), np.array((0.78, 0.57, 0.45), np.float32)
+    photo = np.full((size, size, 3), 0.9, np.float32)
+    photo[5:25, 20:40] = hair
+    photo[25:55, 20:40] = (0.2, 0.3, 0.7)
+    mask = np.zeros((size, size), np.float32)
+    mask[5:55, 20:40] = 1.0
+    part = np.full((size, size), PARTS.index("torso"))
+    part[:25] = PARTS.index("head")
+    face = np.zeros((size, size), np.float32)
+    face[12:25, 20:40] = 1.0  # below the hairline
+    out = unseen_side_colours(photo, mask, part, part, hair, back_face=face, face_skin=skin, hair_curtain=False)
+    assert np.allclose(out[18, 30], skin, atol=0.02) and np.allclose(out[8, 30], hair, atol=0.02)
+    curtain = unseen_side_colours(photo, mask, part, part, hair, back_face=face, face_skin=skin)
+    assert np.allclose(curtain[18, 30], hair, atol=0.02)  # the curtain of a front photo's hair covers it
+    tones = np.array([[[0.95, 0.8, 0.7], [0.78, 0.57, 0.45], [0.45, 0.3, 0.22], [0.3, 0.2, 0.15]]], np.float32)
+    others = np.array([[[0.3, 0.5, 0.2], [0.2, 0.2, 0.22], [0.95, 0.95, 0.95], [0.4, 0.6, 0.9]]], np.float32)
+    assert any_skin(tones).all() and not any_skin(others).any()
 
 
 def test_what_one_arm_holds_stays_off_the_other_arms_back():

@@ -67,14 +67,20 @@ def vertex_sides(skinning_weights: np.ndarray, joint_names: list[str]) -> np.nda
     return np.where(left > 0.5, 1, np.where(right > 0.5, -1, 0)).astype(np.int64)
 
 
+FOREHEAD = 0.05  # metres above the ears' centre where the face ends and the hair begins (face_vertices)
+
+
 def face_vertices(vertices: np.ndarray, parts: np.ndarray, coco17: np.ndarray) -> np.ndarray:
     """(V,) bool: the head's vertices (``parts``, :data:`PARTS`) in front of its ears, along the line from
-    the ears' centre to the nose of ``coco17`` (17, 3, COCO joints in the vertices' space): the face and
-    the front of the neck's top, not the back of the head."""
-    ears = 0.5 * (np.asarray(coco17[3], np.float64) + coco17[4])
-    forward = np.asarray(coco17[0], np.float64) - ears
-    norm = float(np.linalg.norm(forward))
-    if norm < 1e-9:
+    the ears' centre to the nose of ``coco17`` (17, 3, COCO joints in the vertices' space, world units
+    metres), and at most :data:`FOREHEAD` above the ears' centre, along the line from the shoulders'
+    centre to it: the face and the front of the neck's top, not the back of the head nor its top."""
+    c = np.asarray(coco17, np.float64)
+    ears = 0.5 * (c[3] + c[4])
+    forward, up = c[0] - ears, ears - 0.5 * (c[5] + c[6])
+    if np.linalg.norm(forward) < 1e-9 or np.linalg.norm(up) < 1e-9:
         return np.zeros(len(vertices), bool)
-    ahead = (np.asarray(vertices, np.float64) - ears) @ (forward / norm)
-    return (parts == PARTS.index("head")) & (ahead > 0.0)
+    rel = np.asarray(vertices, np.float64) - ears
+    ahead = rel @ (forward / np.linalg.norm(forward))
+    above = rel @ (up / np.linalg.norm(up))
+    return (parts == PARTS.index("head")) & (ahead > 0.0) & (above < FOREHEAD)
