@@ -83,8 +83,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    row the median colour of what the photo shows of that part, without prints, logos, held objects or
    the skin of arms held before it, hands in their own colour and the head's back in the hair's, where
    its farthest surface is the face (the far cheek of a person turned from the camera: the body's head
-   before its ears, :func:`~humanvdm_core.body.parts.face_vertices`) in the face's skin, blended over
-   :data:`FACE_SMOOTH` (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
+   before its ears and below its hairline, :func:`~humanvdm_core.body.parts.face_vertices`) in the
+   face's skin, blended over :data:`FACE_SMOOTH` (for a photo from behind, which shows no face: the
+   skin of its hands, and no hair curtain over it) (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
    at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
    above, the back sheet lies lower than the front along each ray. The body parts' map is resized from
    the grid to the texture with smooth borders (:func:`smooth_labels`), so the hairline at the back of
