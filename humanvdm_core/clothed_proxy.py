@@ -85,8 +85,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    its farthest surface is the face (the far cheek of a person turned from the camera: the body's head
    before its ears and below its hairline, :func:`~humanvdm_core.body.parts.face_vertices`) in the
    face's skin, blended over :data:`FACE_SMOOTH` (for a photo from behind, which shows no face: the
-   skin of its hands, and no hair curtain over it) (:mod:`humanvdm_core.proxy_colours`). A point of the back sheet takes the colours of the photo's row
-   at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
+   skin of its hands, and no hair curtain over it) (:mod:`humanvdm_core.proxy_colours`). A point of the
+   back sheet takes the colours of the photo's row at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
    above, the back sheet lies lower than the front along each ray. The body parts' map is resized from
    the grid to the texture with smooth borders (:func:`smooth_labels`), so the hairline at the back of
    the neck is not the grid's staircase.
@@ -111,10 +111,9 @@ from humanvdm_core.body.parts import PARTS, face_vertices, vertex_parts, vertex_
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.image_fill import CROSS, harmonic_extension, nearest_fill, outside_of, row_nearest
 from humanvdm_core.proxy_colours import (
-    any_skin,
     distinct_hair_curtain,
     face_colour,
-    median_colour,
+    hands_skin,
     refill_band,
     unseen_side_colours,
 )
@@ -132,7 +131,6 @@ HAIR_BELOW_CHIN = 0.03  # a curtain column reaching this fraction of the grid be
 SKIN_INFLUENCES = 4
 LABEL_SMOOTH = 1.0  # grid px over which the body parts' borders are smoothed for the texture (smooth_labels)
 FACE_SMOOTH = 2.0  # grid px over which the border of the face and the hair on the unseen side is blended
-MIN_SKIN_PX = 32  # a photo from behind: the skin pixels needed to take the face's colour from them
 ARM_REACH = 0.08  # metres an arm in front of or beside the body may stand out of the body's nearest surface ...
 ARM_NEAR = 0.15  # ... fading out over this distance (metres in the image plane) from the body's silhouette
 # metres clothes and shoes add to a part's depth, in front and behind (the fitted body is naked) ...
@@ -759,15 +757,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bknown = bp >= 0
     bp = np.where(bknown, bp, fp).astype(np.int64)
     skin = face_colour(front_tex, mask, fp, head_colour)  # before the head's own colour stands in for hair
-    face_skin = skin
-    if facing_away:  # the photo shows no face: its skin is the hands' skin (else the bare arms')
-        person, skin_px = mask > 0.5, any_skin(front_tex)
-        face_skin = None
-        for part in ("hands", "arms"):
-            shown = person & skin_px & (fp == PARTS.index(part))
-            if shown.sum() >= MIN_SKIN_PX:
-                face_skin = median_colour(front_tex[shown])
-                break
+    face_skin = hands_skin(front_tex, mask, fp) if facing_away else skin  # a photo from behind shows no face
     if head_colour is None:
         head_pixels = (fp == PARTS.index("head")) & (mask > 0.5)
         head_colour = np.median(front_tex[head_pixels], axis=0) if head_pixels.any() else None

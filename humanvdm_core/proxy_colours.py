@@ -54,6 +54,7 @@ SKIN_CHROMA = 0.035  # chromaticity distance (rgb / sum) within which a pixel co
 SKIN_BRIGHTNESS = (0.45, 1.6)  # ... at a brightness between these multiples of the face's
 SKIN_CR = (135, 180)  # any_skin: the YCrCb Cr range of skin of any tone (8 bits) ...
 SKIN_CB = (80, 135)  # ... and its Cb range
+MIN_SKIN_PX = 32  # hands_skin: the skin pixels needed to take a colour from them
 ARM_SKIN_REACH = 0.03  # skin within this fraction of the frame of the fitted arms and hands is theirs (see below)
 NECKLINE_SHARE = 0.25  # a torso row with at least this share of non-skin pixels is clothed at the back ...
 NECKLINE_DEPTH = 0.15  # ... from the neck's base to this fraction of the person's height below the shoulders' top
@@ -224,9 +225,8 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
     waistline) and long hair come from that row (fractional: the two nearest blended), not the pixel's
     own; the arms, the hands, the head and what lies outside the body keep their own rows. With
     ``back_face`` (H, W float in [0, 1]: how much the farthest surface is the face, the head's front, as
-    where a person turned from the camera shows the far cheek) and ``skin_colour`` (or ``face_skin``, the
-    face's colour where the photo shows no face), the head there blends from ``head_colour`` to the skin's
-    colour by it. ``hair_curtain`` False (a photo from behind: the hair it shows hangs on its own side)
+    where a person turned from the camera shows the far cheek) and ``face_skin`` (the face's skin colour;
+    for a photo from behind, :func:`hands_skin`), the head there blends from ``head_colour`` to it. ``hair_curtain`` False (a photo from behind: the hair it shows hangs on its own side)
     paints no hair curtain on the unseen side."""
     size = photo.shape[0]
     band = max(1, int(PRINT_BAND * size))
@@ -298,10 +298,9 @@ def unseen_side_colours(photo: np.ndarray, mask: np.ndarray, front_part: np.ndar
         if not want.any() or source.sum() < 4:
             continue
         if PARTS[p] == "head" and head_colour is not None:
-            face = face_skin if face_skin is not None else skin_colour
-            if back_face is not None and face is not None:  # the far cheek of a person turned away
+            if back_face is not None and face_skin is not None:  # the far cheek of a person turned away
                 w = back_face[want][:, None]
-                out[want] = (1.0 - w) * np.asarray(head_colour, np.float32) + w * np.asarray(face, np.float32)
+                out[want] = (1.0 - w) * np.asarray(head_colour, np.float32) + w * np.asarray(face_skin, np.float32)
             else:
                 out[want] = head_colour
         elif PARTS[p] == "hands":
@@ -375,6 +374,18 @@ def face_colour(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray,
     head = (mask > 0.5) & (front_part == PARTS.index("head"))
     face = head & (np.linalg.norm(photo - np.asarray(hair, np.float32)[None, None], axis=2) > HAIR_DISTANCE)
     return median_colour(photo[face]) if face.sum() >= 32 else None
+
+
+def hands_skin(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray) -> np.ndarray | None:
+    """The skin colour of a photo that shows no face (taken from behind): the median colour of the hands'
+    pixels in the chroma range of skin (:func:`any_skin`), else of the arms' (bare arms); None with fewer
+    than :data:`MIN_SKIN_PX` of them (gloves, sleeves, hands out of view)."""
+    person, skin = mask > 0.5, any_skin(photo)
+    for part in ("hands", "arms"):
+        shown = person & skin & (front_part == PARTS.index(part))
+        if shown.sum() >= MIN_SKIN_PX:
+            return median_colour(photo[shown])
+    return None
 
 
 def hair_curtain(photo: np.ndarray, mask: np.ndarray, front_part: np.ndarray, hair: np.ndarray) -> np.ndarray:

@@ -134,11 +134,11 @@ def test_the_far_cheek_of_a_person_turned_away_is_skin_not_hair():
     part[:25] = PARTS.index("head")
     cheek = np.zeros((size, size), np.float32)
     cheek[5:25, 20:27], cheek[5:25, 27] = 1.0, 0.5
-    out = unseen_side_colours(photo, mask, part, part, hair, skin_colour=skin, back_face=cheek)
+    out = unseen_side_colours(photo, mask, part, part, hair, back_face=cheek, face_skin=skin)
     assert np.allclose(out[15, 22], skin, atol=0.02) and np.allclose(out[15, 35], hair, atol=0.02)
     assert np.allclose(out[15, 27], 0.5 * (skin + hair), atol=0.02)
     assert np.allclose(out[40, 30], unseen_side_colours(photo, mask, part, part, hair)[40, 30])
-    assert np.allclose(unseen_side_colours(photo, mask, part, part, hair, skin_colour=skin)[15, 22], hair, atol=0.02)
+    assert np.allclose(unseen_side_colours(photo, mask, part, part, hair, face_skin=skin)[15, 22], hair, atol=0.02)
 
     coco = np.zeros((17, 3))
     coco[0], coco[3], coco[4] = (0.0, 1.6, 0.1), (0.07, 1.6, 0.0), (-0.07, 1.6, 0.0)  # nose 10 cm before the ears

@@ -91,9 +91,9 @@ Contract:
     hood, a helmet, a high collar, raised shoulders hide it) the fit tilted the head towards the camera
     to foreshorten it (the three.js Soldier's ears 7.5 cm before its shoulders); where hands are held
     before the face or the chest it held the head 2 cm behind the shoulders (hands on the head, a hand
-    at the face, clasped or crossed arms). Joining from the start, it knocked the heads of three synthetic subjects in headwear (a hat,
-    a bun, a helmet: 2.4-3.5 cm before the shoulders, near the truth's) back; once the head has
-    settled, such heads are left alone. A bow carries the head forward with the chest: a bowing torso
+    at the face, clasped or crossed arms). Joining from the start, it knocked the heads of three
+    synthetic subjects in headwear (a hat, a bun, a helmet: 2.4-3.5 cm before the shoulders, near the
+    truth's) back; once the head has settled, such heads are left alone. A bow carries the head forward with the chest: a bowing torso
     is left to its head, and so is a head the photo's face shows bowed (``head_over_shoulders`` off:
     :attr:`~humanvdm_core.perception.facing.Facing.bowed`).
 
