@@ -389,15 +389,15 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarr
     conf = view.confidences
     hidden_legs = []
     for joint, (left, right) in (("knee", (13, 14)), ("ankle", (15, 16))):
-        hidden = [side for side, i in (("left", left), ("right", right)) if conf[i] < HIDDEN_CONFIDENCE]
+        hidden = [side for side, i in (("left", left), ("right", right)) if 0 < conf[i] < HIDDEN_CONFIDENCE]
         if hidden:
             hidden_legs.append(f"{joint}s" if len(hidden) == 2 else f"{hidden[0]} {joint}")
     if hidden_legs:
         verb = "is" if len(hidden_legs) == 1 and not hidden_legs[0].endswith("s") else "are"
-        out.append(f"{name}: the {' and '.join(hidden_legs)} {verb} hidden (behind the other leg, under a long dress "
-                   "or coat, or out of view): the legs' pose is guessed")
-    if min(conf[9], conf[10]) < HIDDEN_CONFIDENCE:
-        out.append(f"{name}: a hand is hidden (behind the body, in a pocket or out of view): its pose is guessed")
+        out.append(f"{name}: the {' and '.join(hidden_legs)} {verb} hidden (behind the other leg, or under a long "
+                   "dress or coat): the legs' pose is guessed")
+    if any(0 < conf[i] < HIDDEN_CONFIDENCE for i in (9, 10)):
+        out.append(f"{name}: a hand is hidden (behind the body or in a pocket): its pose is guessed")
     thighs = coco17[[13, 14]] - coco17[[11, 12]]
     angle = np.degrees(np.arccos(np.clip(-thighs[:, 1] / np.maximum(np.linalg.norm(thighs, axis=1), 1e-9), -1, 1)))
     if np.all(angle > SEATED_THIGH_DEG):
@@ -412,6 +412,31 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarr
             out.append(f"{name}: the {side} forearm points {'towards' if angle > 0 else 'away from'} the camera "
                        f"({abs(angle):.0f} deg out of the photo's plane): how far it, and anything it holds, "
                        "stands out from the body is guessed")
+    return out
+
+
+def _pose_told(confidences: np.ndarray) -> set[str]:
+    """The joints (COCO-17 names, spaced) whose hiding :func:`_pose_warnings` says in words of its own: the
+    knees and ankles of hidden legs, the wrists of hidden hands (not those cut off by the frame, which
+    the detector says)."""
+    from humanvdm_core.body.model import COCO17_NAMES
+
+    return {COCO17_NAMES[i].replace("_", " ") for i in (9, 10, 13, 14, 15, 16) if 0 < confidences[i] < HIDDEN_CONFIDENCE}
+
+
+def _without_told(warnings: list[str], name: str, told: set[str]) -> list[str]:
+    """``warnings`` with the detector's "not clearly visible in ``name``: ..." line listing only the joints
+    not in ``told`` (gone when none is left): a long dress's hidden ankles are said once, with what
+    was guessed."""
+    prefix = f"not clearly visible in {name}: "
+    out = []
+    for w in warnings:
+        if w.startswith(prefix):
+            rest = [j for j in w[len(prefix):].split(", ") if j not in told]
+            if not rest:
+                continue
+            w = prefix + ", ".join(rest)
+        out.append(w)
     return out
 
 
@@ -627,7 +652,8 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     return BodyProxy(input_view=view, mesh=mesh, cameras=cameras, front_index=front,
                      background=tuple(float(c) for c in background),
                      reprojection_px=float(np.nanmean(fit.reprojection_px)),
-                     warnings=list(dict.fromkeys(warnings + fit.warnings)), clothed=clothed,
+                     warnings=_without_told(list(dict.fromkeys(warnings + fit.warnings)), name,
+                                            _pose_told(view.confidences)), clothed=clothed,
                      facing_away=facing.away, coco17=coco17)
 
 

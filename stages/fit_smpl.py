@@ -33,7 +33,8 @@ Output ``body``:
 - ``report.json``: fit quality per frame and overall, frames used/skipped and why, warnings (every
   per-frame one) and ``warnings_summary``: the same, one line per kind with the frames it concerns
   (e.g. "keypoints unusable in 6 of 21 frames (0003, 0007, ...)"; joints hidden only in some frames,
-  as an orbit's side views hide the far arm, make no line), plus skipped frames and fit-quality
+  as an orbit's side views hide the far arm, or seen in the input photo's frame (the one nearest
+  azimuth 0), make no line), plus skipped frames and fit-quality
   warnings (a keypoint reprojection error over 3 % of the frame; a body partly outside the person's
   masks, or covering little of them: ``silhouette_doubts``; ``mean_iou``, ``mean_outside`` and
   ``mean_cover`` hold the numbers). The summary lines are also logged as warnings, so they reach the run
@@ -139,14 +140,18 @@ def _frames_text(frames: list[str], total: int) -> str:
     return f"{len(frames)} of {total} frame{'s' if total != 1 else ''} ({shown})"
 
 
-def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str, str] | None = None) -> list[str]:
+def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str, str] | None = None,
+                       seen_in: str | None = None) -> list[str]:
     """One line per kind of warning instead of one per frame: "keypoints unusable in 6 of 21 frames
     (0003, 0007, ...)"; joint names are counted ("left wrist 5x"); warnings that name no frame are
     kept once each, in order. ``skipped`` (frame name -> why) adds a line for frames not used at all.
     Joints not clearly visible make a line only when hidden in more than :data:`HIDDEN_MOST` of the
-    frames (an orbit's side views hide the far arm; the other frames show it); report.json keeps every
-    per-frame warning."""
+    frames (an orbit's side views hide the far arm; the other frames show it) and, with ``seen_in``
+    (the name of the input photo's frame), hidden there too: the photo shows the others (hands on the
+    hips, which the orbit's side and back views hide), and ``diffuse`` says what it hides. report.json
+    keeps every per-frame warning."""
     kinds: dict[tuple[str, str], tuple[list[str], dict[str, int]]] = {}
+    hidden_in_photo: set[str] = set()
     other: dict[str, list[str]] = {}  # message (its frame name replaced by "*") -> frames
     for w in warnings:
         for pattern, head, tail, count in _PER_FRAME:
@@ -158,6 +163,8 @@ def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str
                 for item in (x.strip() for x in m.group(2).split(",")) if count else ():
                     if item:
                         items[item] = items.get(item, 0) + 1
+                        if head == _HIDDEN and m.group(1) == seen_in:
+                            hidden_in_photo.add(item)
                 break
         else:
             m = re.search(rf"\b{_FRAME}", w)
@@ -169,7 +176,8 @@ def summarize_warnings(warnings: list[str], frames_total: int, skipped: dict[str
         out.append(f"frames skipped (no usable person): {_frames_text(list(skipped), frames_total)}")
     for (head, tail), (frames, items) in kinds.items():
         if head == _HIDDEN:  # hidden in a few frames of an orbit is normal: the others show the joint
-            most = {k: n for k, n in items.items() if n > HIDDEN_MOST * frames_total}
+            most = {k: n for k, n in items.items()
+                    if n > HIDDEN_MOST * frames_total and (seen_in is None or k in hidden_in_photo)}
             if most:
                 ranked = sorted(most.items(), key=lambda kv: (-kv[1], kv[0]))
                 out.append(f"{head} in most frames, so their pose is a guess: "
@@ -308,7 +316,8 @@ def run(ctx: StageContext) -> None:
         warnings.append(f"poor keypoint fit: mean reprojection error {mean_reproj:.1f} px")
     warnings += silhouette_doubts(outside, cover)
     summary = summarize_warnings(warnings, len(selected),
-                                 {paths[i].stem: why for i, why in sorted(failed.items())})
+                                 {paths[i].stem: why for i, why in sorted(failed.items())},
+                                 seen_in=paths[select_frames(cameras.azimuth_deg, "1")[0]].stem)
     for line in summary:
         ctx.log.warning("%s", line)
     report = {

@@ -245,11 +245,29 @@ def test_a_hidden_knee_is_named_and_a_profile_is_measured_from_the_shoulders():
     assert one.startswith("p.png: the right knee is hidden (behind the other leg"), one
     conf[13] = 0.1
     assert _pose_warnings("p.png", SimpleNamespace(confidences=conf), coco)[0].startswith("p.png: the knees are hidden")
+    conf[[13, 14]] = 0.0  # cut off by the frame: the detector says so ("part of the body is outside ...")
+    assert _pose_warnings("p.png", SimpleNamespace(confidences=conf), coco) == []
     coco[5], coco[6] = (0.2, 1.4, 0.0), (-0.2, 1.4, 0.0)
     w2c = np.eye(4)
     assert shoulder_turn_deg(coco, w2c) < 1.0
     coco[5], coco[6] = (0.0, 1.4, 0.2), (0.0, 1.4, -0.2)
     assert shoulder_turn_deg(coco, w2c) > 89.0
+
+
+def test_a_joint_the_pose_warnings_name_is_not_listed_again():
+    """The detector's "not clearly visible" line keeps only the joints no pose warning speaks of (hidden
+    legs' knees and ankles, hidden hands' wrists), and goes when none is left."""
+    from humanvdm_core.body_prior import _pose_told, _without_told
+
+    conf = np.ones(17)
+    conf[[14, 15, 16]] = 0.2  # the right knee and both ankles under a dress
+    conf[7] = 0.3  # the left elbow
+    told = _pose_told(conf)
+    assert told == {"right knee", "left ankle", "right ankle"}
+    lines = ["not clearly visible in p.png: left elbow, right knee, left ankle, right ankle", "p.png: other"]
+    assert _without_told(lines, "p.png", told) == ["not clearly visible in p.png: left elbow", "p.png: other"]
+    assert _without_told(lines[1:] + ["not clearly visible in p.png: left ankle"], "p.png", told) == ["p.png: other"]
+    assert _without_told(lines, "q.png", told) == lines  # another photo's line is not this one's
 
 
 def test_a_forearm_reaching_out_of_the_photos_plane_is_named():

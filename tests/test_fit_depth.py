@@ -896,6 +896,10 @@ def test_fit_smpl_warning_summary():
     assert summarize_warnings(hidden, 21) == [
         "joints not clearly visible in most frames, so their pose is a guess: left wrist (hidden in 11 of 21)"]
     assert summarize_warnings(hidden[:10], 21) == []
+    # ... unless the input photo's frame shows it: hands on the hips, hidden from the side and behind
+    assert summarize_warnings(hidden, 21, seen_in="0020") == []
+    assert summarize_warnings(hidden, 21, seen_in="0000") == [
+        "joints not clearly visible in most frames, so their pose is a guess: left wrist (hidden in 11 of 21)"]
     assert summarize_warnings(["not clearly visible in frame 0000: left wrist, left elbow"], 1) == [
         "joints not clearly visible in most frames, so their pose is a guess: left elbow (hidden in 1 of 1), "
         "left wrist (hidden in 1 of 1)"]
