@@ -34,6 +34,12 @@ Contract:
     (1 - cos) weighted by the lower confidence of the bone's joints. Only directions count (the
     detector's 3D scale and origin do not matter). This is what tells a single photo's limb depth:
     a seated person's thighs point at the camera, hands on the hips keep the elbows beside the body.
+    In a single photo a joint inside it that the detector does not see clearly (the far leg of a
+    person in profile, a hand behind the back) keeps its 3D landmark, the detector's guess, at
+    :data:`HIDDEN_3D_CONFIDENCE`: with nothing else to hold it, the limb swung to wherever its vertices
+    best moved the hip's or shoulder's keypoint (``coco17`` is regressed from the vertices), a far
+    leg in profile raised horizontally 0.75 m behind the hips. A joint the photo cuts off keeps none
+    (the unseen pixels below guard it).
     An arm the 2D keypoints show held out to the side is first turned into the body's frontal plane
     (:func:`frontal_arms`, ``FitOptions.frontal_arms``): the detector tilts such forearms 20-30 deg
     towards the camera; in a single photo whose 2D keypoints show both arms held out to the side (a
@@ -183,7 +189,8 @@ SILHOUETTE_SIZE = 160  # masks are compared at this resolution
 OUTSIDE_DOUBT = 0.1  # a fitted body with more than this share outside the person's masks is doubtful ...
 COVER_DOUBT = 0.5  # ... and one covering less than this share of them is said (silhouette_doubts)
 CONTOUR_POINTS = 256  # contour samples per frame
-MIN_KEYPOINT_CONFIDENCE = 0.3  # keypoints below this confidence are ignored
+MIN_KEYPOINT_CONFIDENCE = 0.3  # keypoints below this confidence are ignored ...
+HIDDEN_3D_CONFIDENCE = 0.3  # ... but a single photo's 3D landmark of a joint inside it counts at least this much
 BONE_DIRECTION_WEIGHT = 2.0  # default FitOptions.bone_direction_weight
 SINGLE_VIEW_PRIOR_3D = 0.1  # default FitOptions.single_view_pose_prior_weight_3d
 UPRIGHT_WEIGHT = 20.0  # default FitOptions.upright_weight
@@ -479,11 +486,15 @@ class _Problem:
         # 3D landmarks (camera axes) and their confidences; 0 for frames without them
         self.raw_world = np.stack([o.world_keypoints if o.world_keypoints is not None else np.zeros((17, 3))
                                    for o in observations]).astype(np.float32)
-        self.raw_world_conf = self.raw_conf * np.array([o.world_keypoints is not None for o in observations],
-                                                       np.float32)[:, None]
+        has_world = np.array([o.world_keypoints is not None for o in observations], np.float32)[:, None]
+        self.raw_world_conf = self.raw_conf * has_world
         # a single photo only: other views see the depth (in an orbit's side views an arm held out towards
         # the camera lies on the head across the image plane)
         single = sum(o.has_keypoints for o in observations) == 1
+        if single:  # a joint the photo hides but does not cut off: the detector's 3D guess holds it
+            inside = np.stack([o.confidences > 0 for o in observations])
+            self.raw_world_conf = np.maximum(self.raw_world_conf, HIDDEN_3D_CONFIDENCE * has_world * inside
+                                             ).astype(np.float32)
         if options.hands_on_head and single:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
