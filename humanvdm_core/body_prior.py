@@ -85,6 +85,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from humanvdm_core.body.model import COCO17_NAMES
 from humanvdm_core.cameras import Cameras, orbit_cameras, project_points, sample_bilinear
 from humanvdm_core.clothed_proxy import ClothedProxy
 from humanvdm_core.image_fill import nearest_fill
@@ -387,16 +388,17 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarr
     towards or away from the camera (:func:`reaching_forearms`)."""
     out = []
     conf = view.confidences
+    hidden_ids = _hidden_joints(conf)
     hidden_legs = []
     for joint, (left, right) in (("knee", (13, 14)), ("ankle", (15, 16))):
-        hidden = [side for side, i in (("left", left), ("right", right)) if 0 < conf[i] < HIDDEN_CONFIDENCE]
+        hidden = [side for side, i in (("left", left), ("right", right)) if i in hidden_ids]
         if hidden:
             hidden_legs.append(f"{joint}s" if len(hidden) == 2 else f"{hidden[0]} {joint}")
     if hidden_legs:
         verb = "is" if len(hidden_legs) == 1 and not hidden_legs[0].endswith("s") else "are"
         out.append(f"{name}: the {' and '.join(hidden_legs)} {verb} hidden (behind the other leg, or under a long "
                    "dress or coat): the legs' pose is guessed")
-    if any(0 < conf[i] < HIDDEN_CONFIDENCE for i in (9, 10)):
+    if hidden_ids & {9, 10}:
         out.append(f"{name}: a hand is hidden (behind the body or in a pocket): its pose is guessed")
     thighs = coco17[[13, 14]] - coco17[[11, 12]]
     angle = np.degrees(np.arccos(np.clip(-thighs[:, 1] / np.maximum(np.linalg.norm(thighs, axis=1), 1e-9), -1, 1)))
@@ -415,13 +417,16 @@ def _pose_warnings(name: str, view: InputView, coco17: np.ndarray, w2c: np.ndarr
     return out
 
 
+def _hidden_joints(confidences: np.ndarray) -> set[int]:
+    """The COCO-17 wrists, knees and ankles the photo hides: seen less surely than :data:`HIDDEN_CONFIDENCE`,
+    not cut off by the frame (confidence 0, which the detector says itself)."""
+    return {i for i in (9, 10, 13, 14, 15, 16) if 0 < confidences[i] < HIDDEN_CONFIDENCE}
+
+
 def _pose_told(confidences: np.ndarray) -> set[str]:
     """The joints (COCO-17 names, spaced) whose hiding :func:`_pose_warnings` says in words of its own: the
-    knees and ankles of hidden legs, the wrists of hidden hands (not those cut off by the frame, which
-    the detector says)."""
-    from humanvdm_core.body.model import COCO17_NAMES
-
-    return {COCO17_NAMES[i].replace("_", " ") for i in (9, 10, 13, 14, 15, 16) if 0 < confidences[i] < HIDDEN_CONFIDENCE}
+    knees and ankles of hidden legs, the wrists of hidden hands (:func:`_hidden_joints`)."""
+    return {COCO17_NAMES[i].replace("_", " ") for i in _hidden_joints(confidences)}
 
 
 def _without_told(warnings: list[str], name: str, told: set[str]) -> list[str]:

@@ -315,9 +315,9 @@ def run(ctx: StageContext) -> None:
     if np.isfinite(mean_reproj) and mean_reproj > 0.03 * cameras.height:
         warnings.append(f"poor keypoint fit: mean reprojection error {mean_reproj:.1f} px")
     warnings += silhouette_doubts(outside, cover)
+    photo_frame = paths[select_frames(cameras.azimuth_deg, "1")[0]].stem  # nearest azimuth 0: the photo's view
     summary = summarize_warnings(warnings, len(selected),
-                                 {paths[i].stem: why for i, why in sorted(failed.items())},
-                                 seen_in=paths[select_frames(cameras.azimuth_deg, "1")[0]].stem)
+                                 {paths[i].stem: why for i, why in sorted(failed.items())}, seen_in=photo_frame)
     for line in summary:
         ctx.log.warning("%s", line)
     report = {
