@@ -355,9 +355,8 @@ PROFILE_DEG = 60.0  # the fitted shoulders' line this far out of the image plane
 
 
 def _ankles_hidden(confidences: np.ndarray) -> bool:
-    """Both ankles inside the photo but not seen (a long dress or coat); a cut-off ankle has confidence 0."""
-    c = confidences[[15, 16]]
-    return bool(np.all((c > 0) & (c < HIDDEN_CONFIDENCE)))
+    """Both ankles inside the photo but not seen (a long dress or coat; :func:`_hidden_joints`)."""
+    return {15, 16} <= _hidden_joints(confidences)
 
 
 def reaching_forearms(coco17: np.ndarray, w2c: np.ndarray) -> list[tuple[str, float]]:
