@@ -10,7 +10,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
 
 1. **Body depth.** The fitted body is rasterised in the input camera at ``grid`` px: its nearest
    (``front``) and farthest (``back``) camera depth per pixel, and per pixel the body part
-   (:data:`PARTS`, from the skinning weights) of the nearest and of the farthest surface.
+   (:data:`PARTS`, from the skinning weights) of the nearest and of the farthest surface; and per leg
+   (:data:`LEGS`) its own depths and the farthest depth of the body without it, which tell a leg behind
+   the other (step 7, layers).
 2. **Domain.** The person's mask (``mask > 0.5``, dilated by one grid pixel so the proxy covers the
    whole silhouette) is the proxy's footprint; the vertices on its border move onto the mask's own
    outline (:func:`rim_shift`): in the input view the proxy's silhouette is the mask, without a grid
@@ -78,6 +80,21 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
    its own texture coordinates): geometrically closed. Front faces are wound to face the camera,
    back faces away (outward normals).
+
+   **Layers.** Two sheets hold one stretch of each ray, so a leg behind the other (the far leg of a
+   person seen in profile, the trailing leg of a stride) would be joined to the near one by a slab,
+   seen from the front as one block from hip to feet. Where a leg starts more than :data:`LAYER_GAP`
+   behind the other one's far side (the region closed and opened by :data:`LAYER_KERNEL`, at least
+   :data:`LAYER_MIN` of the body's pixels; not in rows where the mask reaches beyond the legs as one
+   garment wrapping them, :func:`wrapped_rows`: a skirt, a dress, a coat; not with ``legs_hidden``),
+   that leg is a layer: the sheets hold what lies before it (their far side is the body's farthest
+   without that leg there; no :data:`ARM_REACH` limit there), and the leg gets its own closed two-sheet
+   surface from its own depths plus its clothing (:func:`layer_surface`) over where it is hidden,
+   reaching two grid pixels into where the sheets hold it, and over what the photo shows of it within
+   :data:`LAYER_OWN` of the other leg, with the mask up to :data:`LAYER_FRINGE` beyond its outline
+   (there the sheets leave it to the layer and end at the near leg's outline; a bit of the footprint
+   the body does not reach then goes with the layer too). A layer's near side stays
+   :data:`LAYER_BEHIND` behind the sheets' front where both are: the input view still shows the photo.
 8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``): the photo on the
    front, its silhouette band refilled from inside; on the back (the unseen side) per body part and
    row the median colour of what the photo shows of that part, without prints, logos, held objects or
@@ -89,7 +106,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    back sheet takes the colours of the photo's row at its own height in the world (:func:`unseen_rows`), not of the row it is seen through: seen from
    above, the back sheet lies lower than the front along each ray. The body parts' map is resized from
    the grid to the texture with smooth borders (:func:`smooth_labels`), so the hairline at the back of
-   the neck is not the grid's staircase.
+   the neck is not the grid's staircase. With layers, a third panel (``[front | back | layers]``)
+   holds the unseen side's colours of the legs they hold; a layer's near side takes the photo's where
+   the photo shows that leg (step 7).
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -149,16 +168,23 @@ SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 RIM_SMOOTH = 0.75  # grid pixels (Gaussian sigma) over which the mask's outline is smoothed for the rim ...
 RIM_MAX_SHIFT = 1.0  # ... and the farthest (grid pixels) a rim vertex moves onto it
+LEGS = (1, -1)  # the legs' sides (+1 left, -1 right), in the order of body_maps' leg maps
+LAYER_GAP = 0.03  # metres of empty ray between a leg and the other one before it for it to be a layer ...
+LAYER_MIN = 0.02  # ... over at least this share of the body's pixels
+LAYER_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))  # a layer's region: closed, then opened
+LAYER_OWN = 4.0  # grid pixels from the other leg within which what the photo shows of a layered leg is the layer's ...
+LAYER_FRINGE = 3.0  # ... with the mask up to this many grid pixels beyond its outline
+LAYER_BEHIND = 0.002  # metres a layer's near side stays behind the sheets' front where both are
 
 
 @dataclass
 class ClothedProxy:
     """A closed, textured, skinned surface of the person (see the module docstring)."""
 
-    mesh: TexturedMesh  # vertices in the orbit's world, UVs into the [front | back] texture
+    mesh: TexturedMesh  # vertices in the orbit's world, UVs into the [front | back (| layers)] texture
     skin_joints: np.ndarray  # (V, SKIN_INFLUENCES) int32 joint indices of the body model
     skin_weights: np.ndarray  # (V, SKIN_INFLUENCES) float32, rows sum to 1
-    front: np.ndarray  # (V,) bool: on the front sheet (seen in the input view)
+    front: np.ndarray  # (V,) bool: seen in the input view (the front sheet; a layer where the photo shows it)
     body_fraction: float  # share of the person's mask the body covers
 
     def vertex_colors(self) -> np.ndarray:
@@ -208,7 +234,10 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     part of the nearest and of the farthest surface (-1 where empty), from ``sides`` (V,) in
     {-1, 0, 1} their sides (0 where empty or without ``sides``), from ``face`` (V,) bool whether the
     farthest surface is the face (``back_face``; False without ``face``), and the same depths of the body
-    without its arms and hands (``trunk_*``: what lies behind an arm held before the body)."""
+    without its arms and hands (``trunk_*``: what lies behind an arm held before the body); per leg
+    (:data:`LEGS`, stacked) its own nearest and farthest depth and far part (``leg_near`` / ``leg_far`` /
+    ``leg_part``), and the farthest depth, part and side of the body without it (``rest_far`` /
+    ``rest_part`` / ``rest_side``)."""
     from humanvdm_core.render import render_views
 
     # one part (and side) per face, drawn flat: codes interpolated across a face between two parts pass
@@ -257,10 +286,34 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     trunk_front = np.where(within(trunk.depth[0]), trunk.depth[0], 0.0).astype(np.float64)
     trunk_back = np.where(trunk_far.depth[0] > 0, 2.0 * c - trunk_far.depth[0], 0.0)
     trunk_back = np.where(within(trunk_back), trunk_back, 0.0)
+
+    # each leg (LEGS: left, right) alone, its nearest and farthest depth, and the farthest depth of the body
+    # without it (with that surface's part and side): what lies along a ray besides the leg (a leg behind
+    # the other, contract step 7); 0 (-1 for a part) where empty
+    is_leg = np.isin(_face_mode(parts[faces]), [PARTS.index("legs"), PARTS.index("feet")])
+    face_side = _face_mode(np.asarray(sides)[faces]) if sides is not None else np.zeros(len(faces), np.int64)
+    legs = {"leg_near": [], "leg_far": [], "leg_part": [], "rest_far": [], "rest_part": [], "rest_side": []}
+    for side in LEGS:
+        own = is_leg & (face_side == side)
+        leg_near = render_views(TexturedMesh(corners, flat[own], vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+        leg_far = render_views(TexturedMesh(world, flat[own], vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+        rest = render_views(TexturedMesh(world, flat[~own], vertex_colors=code), camera, (0.0, 0.0, 0.0), samples=1)
+        leg_back = np.where(leg_far.depth[0] > 0, 2.0 * c - leg_far.depth[0], 0.0)
+        seen = (leg_near.depth[0] > 0) & within(leg_near.depth[0]) & within(leg_back)
+        rest_back = np.where(rest.depth[0] > 0, 2.0 * c - rest.depth[0], 0.0)
+        rest_seen = (rest.depth[0] > 0) & within(rest_back)
+        legs["leg_near"].append(np.where(seen, leg_near.depth[0], 0.0))
+        legs["leg_far"].append(np.where(seen, leg_back, 0.0))
+        legs["leg_part"].append(np.where(seen, part_map(leg_far), -1))
+        legs["rest_far"].append(np.where(rest_seen, rest_back, 0.0))
+        legs["rest_part"].append(np.where(rest_seen, part_map(rest), -1))
+        legs["rest_side"].append(np.where(rest_seen, side_map(rest), 0))
     return {"front": near.depth[0].astype(np.float64), "back": back, "covered": covered,
             "front_part": part_map(near), "back_part": part_map(far), "front_side": side_map(near),
             "back_side": side_map(far), "back_face": (far.depth[0] > 0) & (far.rgba[0, ..., 2] > 0.5),
-            "trunk_front": trunk_front, "trunk_back": trunk_back}
+            "trunk_front": trunk_front, "trunk_back": trunk_back,
+            **{key: np.stack(value).astype(np.float64 if key.endswith(("near", "far")) else np.int64)
+               for key, value in legs.items()}}
 
 
 def grid_faces(index: np.ndarray) -> np.ndarray:
@@ -278,6 +331,15 @@ def grid_faces(index: np.ndarray) -> np.ndarray:
     ):
         tris.append(np.stack([t0[cond], t1[cond], t2[cond]], axis=1))
     return np.concatenate(tris)
+
+
+def layer_surface(near: np.ndarray, far: np.ndarray, zone: np.ndarray, extra: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A closed two-sheet surface of a layer over ``zone`` (H, W bool): mid-depth and half-thickness per
+    pixel from its ``near`` / ``far`` depths, ``extra`` metres (clothing) added to both sides, and 0 on
+    the zone's border so its two sheets meet there."""
+    inner = cv2.erode(zone.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+    return 0.5 * (near + far), np.where(inner, 0.5 * (far - near) + extra, 0.0)
 
 
 # ----------------------------------------------------------------------------- thickness
@@ -522,6 +584,31 @@ def skirt_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: 
     return out
 
 
+def wrapped_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px: np.ndarray) -> np.ndarray:
+    """(H,) bool: rows where one garment may wrap the legs -- the run of the footprint (arms and hands
+    left out) around the body's legs reaches more than :data:`SKIRT_MARGIN` beyond them on both sides, or
+    on the one side where it does not end at an arm or a hand (a hand hanging beside the thigh hides
+    that side) (a skirt, a dress, a coat or wide trousers, from the front or from the side).
+    ``metres_per_px`` (H, W): the grid's pixel size in metres at each pixel's depth."""
+    legs = body & np.isin(maps["front_part"], [PARTS.index("legs"), PARTS.index("feet")])
+    limb = body & np.isin(maps["front_part"], [PARTS.index("arms"), PARTS.index("hands")])
+    cover = domain & ~limb
+    w = domain.shape[1]
+    out = np.zeros(domain.shape[0], bool)
+    for r in np.nonzero(legs.any(axis=1))[0]:
+        lx = np.nonzero(legs[r])[0]
+        a, b = lx.min(), lx.max()
+        while a > 0 and cover[r, a - 1]:
+            a -= 1
+        while b + 1 < w and cover[r, b + 1]:
+            b += 1
+        m = float(metres_per_px[r, lx].mean())
+        margins = [(lx.min() - a) * m if a == 0 or not limb[r, a - 1] else np.inf,
+                   (b - lx.max()) * m if b + 1 == w or not limb[r, b + 1] else np.inf]
+        out[r] = min(margins) > SKIRT_MARGIN and min(margins) < np.inf
+    return out
+
+
 def pixel_rays(camera: Cameras) -> np.ndarray:
     """(H, W, 3): per pixel centre of ``camera`` (one camera), its ray in camera space at depth 1."""
     yy, xx = np.mgrid[0:camera.height, 0:camera.width]
@@ -632,11 +719,6 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         smooth = cv2.medianBlur(np.where(body, maps[key], 0.0).astype(np.float32), 5)
         inner = cv2.erode(body.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         maps[key] = np.where(inner & (np.abs(maps[key] - smooth) > 0.05), smooth, maps[key])
-    # an arm in front of or beside the body stands at most ARM_REACH out of the body's nearest surface: a
-    # single photo's arm depth is the least certain part of the fit, and the proxy fills everything between
-    # an arm and the body behind it. The pull fades out over ARM_NEAR from the body's silhouette, so an
-    # arm reaching out sideways keeps its depth. Likewise behind the body: an arm that it hides (the far
-    # arm of a person seen in profile) stands at most ARM_REACH out of its farthest surface.
     fx = float(cam_g.K[0, 0, 0])
     limbs = [PARTS.index("arms"), PARTS.index("hands")]
 
@@ -646,9 +728,43 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
 
     # the fitted arms and hands as the nearest surface, less those a contact places
     limb_front = body & np.isin(maps["front_part"], limbs) & ~placed("front")
+    # a leg behind the other (the trailing leg of a stride, the far leg of a person seen in profile) is a
+    # layer of its own: the sheets hold what lies before it, and it gets its own closed surface (below), so
+    # the legs stand apart from every side. Not inside loose clothing or a skirt (one garment wraps the
+    # legs), nor where the legs are hidden (their fitted depth is a guess)
+    near, far = maps["leg_near"], maps["leg_far"]
+    present = near > 0
+    layers = np.zeros(near.shape, bool)
+    if not legs_hidden:
+        open_ = body & ~wrapped_rows(maps, body, domain, np.where(body, maps["front"], 1.0) / fx)[:, None]
+        for k in range(len(LEGS)):
+            behind = present[k] & present[1 - k] & (near[k] > far[1 - k] + LAYER_GAP) & open_
+            # whole regions, not a pixel here and there where the legs' gap comes and goes
+            behind = cv2.morphologyEx(behind.astype(np.uint8), cv2.MORPH_CLOSE, LAYER_KERNEL)
+            layers[k] = cv2.morphologyEx(behind, cv2.MORPH_OPEN, LAYER_KERNEL).astype(bool) & present[k] & open_
+        layers &= (layers.sum(axis=(1, 2)) >= LAYER_MIN * body.sum())[:, None, None]
+    split = layers.any(axis=0)
+    # what the photo shows of a layered leg (where it is the body's nearest surface) within LAYER_OWN of the
+    # other leg, and the mask just beside it, are the layer's too: the sheets end at the near leg's outline
+    owned = np.zeros(near.shape, bool)
+    if split.any():
+        shown = body & np.isin(maps["front_part"], [PARTS.index("legs"), PARTS.index("feet")])
+        reach = cv2.distanceTransform((~(present[0] & present[1])).astype(np.uint8), cv2.DIST_L2, 5)
+        owner = np.zeros((g, g), np.float32)
+        for k in np.nonzero(layers.any(axis=(1, 2)))[0]:
+            owner[shown & (maps["front_side"] == LEGS[k]) & open_ & (reach <= LAYER_OWN)] = k + 1
+        beside = domain & ~body & (cv2.distanceTransform((~body).astype(np.uint8), cv2.DIST_L2, 5) <= LAYER_FRINGE)
+        owner = np.where(beside, nearest_fill(owner, body), owner).astype(np.int64)
+        owned = (owner[None] == np.arange(1, len(LEGS) + 1)[:, None, None]) & domain[None]
+    # an arm in front of or beside the body stands at most ARM_REACH out of the body's nearest surface: a
+    # single photo's arm depth is the least certain part of the fit, and the proxy fills everything between
+    # an arm and the body behind it. The pull fades out over ARM_NEAR from the body's silhouette, so an
+    # arm reaching out sideways keeps its depth. Likewise behind the body: an arm that it hides (the far
+    # arm of a person seen in profile) stands at most ARM_REACH out of its farthest surface. Neither where
+    # a layer lies behind
     if (maps["trunk_front"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_front"], fx)
-        shift = np.where(limb_front, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
+        shift = np.where(limb_front & ~split, np.clip(ref - ARM_REACH - maps["front"], 0.0, None) * fade, 0.0)
         # the arm's far side moves with it, unless the far surface is the other arm's (a forearm folded
         # across it): that arm stays where it is
         same_arm = np.isin(maps["back_part"], limbs) & (maps["back_side"] == maps["front_side"])
@@ -656,9 +772,24 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         maps["back"] = np.maximum(maps["back"] + np.where(same_arm, shift, 0.0), maps["front"])
     if (maps["trunk_back"] > 0).any():
         ref, fade = arm_reach_limit(maps["trunk_back"], fx)
-        arm = body & np.isin(maps["back_part"], limbs) & ~placed("back")
+        arm = body & np.isin(maps["back_part"], limbs) & ~placed("back") & ~split
         pull = np.where(arm, np.clip(maps["back"] - ref - ARM_REACH, 0.0, None) * fade, 0.0)
         maps["back"] = np.maximum(maps["back"] - pull, maps["front"])
+    for k in np.nonzero(layers.any(axis=(1, 2)))[0]:  # the sheets hold what lies before a layered leg
+        there = layers[k]
+        maps["back"] = np.where(there, np.maximum(maps["rest_far"][k], maps["front"]), maps["back"])
+        maps["back_part"] = np.where(there, maps["rest_part"][k], maps["back_part"])
+        maps["back_side"] = np.where(there, maps["rest_side"][k], maps["back_side"])
+        maps["back_face"] = maps["back_face"] & ~there
+    body_fraction = float(body.sum() / max(1, (person_g & domain).sum()))
+    domain_all, border_all = domain, domain & ~cv2.erode(domain.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+    if owned.any():  # the sheets cover the rest; a bit of it the body does not reach goes with the layer
+        rest = domain & ~owned.any(axis=0)
+        _, pieces = cv2.connectedComponents(rest.astype(np.uint8), connectivity=4)
+        stray = rest & ~np.isin(pieces, np.unique(pieces[rest & body]))
+        owned[np.argmax(owned.sum(axis=(1, 2)))] |= stray
+        domain = rest & ~stray
+        body = body & domain
     # a garment that stands out beyond the body at both sides stands as far out in front and behind
     margins = garment_margins(maps, body, person_g, float(np.median(maps["front"][body])) / fx)
     clothing = dict(CLOTHING)
@@ -746,6 +877,53 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     front_faces = grid_faces(index_front)  # wound to face the camera (normals towards -z)
     back_faces = front_faces[:, ::-1] + n
     faces_out = np.concatenate([front_faces, back_faces])
+    # each layered leg: its own closed surface over where it is hidden, reaching two grid pixels into where
+    # the sheets hold it (so the two join), and over what the photo shows of it (its own pixels, in the
+    # photo's colours there: the sheets end at the near leg's outline)
+    layer_part = np.full((g, g), -1, np.int64)
+    layer_side = np.zeros((g, g), np.int64)
+    layer_sheets = []  # (panel per vertex, pixel x, pixel y) of each layer's vertices
+    layer_front = []  # whether each layer vertex is seen in the input view
+    for k in np.nonzero(layers.any(axis=(1, 2)))[0]:
+        seen = present[k]
+        l_near = nearest_fill(near[k], seen)  # out to the mask beside the leg
+        l_far = np.maximum(nearest_fill(far[k], seen), l_near)
+        grow = np.ones((5, 5), np.uint8)
+        zone = ((cv2.dilate((layers[k] | owned[k]).astype(np.uint8), grow).astype(bool) & seen)
+                | cv2.dilate(owned[k].astype(np.uint8), CROSS.astype(np.uint8)).astype(bool))
+        zone &= domain_all
+        part = nearest_fill(maps["leg_part"][k].astype(np.float32), seen).astype(np.int64)
+        extra = np.zeros((g, g))
+        for name, metres in clothing.items():
+            extra = np.where(part == PARTS.index(name), metres, extra)
+        # behind the sheets' front where both are (the photo shows the sheets there)
+        l_near = np.where(domain, np.maximum(l_near, mid - half + LAYER_BEHIND), l_near)
+        l_mid, l_half = layer_surface(l_near, np.maximum(l_far, l_near), zone, extra)
+        l_border = zone & ~cv2.erode(zone.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+        l_mid, l_half = remove_spikes(l_mid, l_half, zone, l_border)
+        l_mid, l_half = smooth_edge(l_mid, l_half, zone, l_border)
+        lr, lc = np.nonzero(zone)
+        m = len(lr)
+        index = np.full((g, g), -1, np.int64)
+        index[lr, lc] = len(verts) + np.arange(m)
+        l_shift = rim_shift(mask, g, l_border & border_all)[lr, lc]  # on the mask's outline, as the sheets' rim
+        lx, ly = lc + 0.5 + l_shift[:, 0], lr + 0.5 + l_shift[:, 1]
+        l_rays = np.stack([lx, ly, np.ones(m)], axis=1) @ K_inv.T
+        for depth in (l_mid - l_half, l_mid + l_half):
+            verts = np.concatenate([verts, (l_rays * depth[lr, lc][:, None]) @ c2w[:3, :3].T + c2w[:3, 3]])
+        l_faces = grid_faces(index)
+        # the near side's triangles over what the photo shows of the leg take the photo's colours, through
+        # copies of their vertices (the rest takes the unseen side's)
+        shown = owned[k][lr, lc][l_faces - len(verts) + 2 * m].all(axis=1)
+        copies, inverse = np.unique(l_faces[shown], return_inverse=True)
+        l_faces[shown] = len(verts) + inverse.reshape(-1, 3)
+        verts = np.concatenate([verts, verts[copies]])
+        faces_out = np.concatenate([faces_out, l_faces, grid_faces(index)[:, ::-1] + m])
+        layer_part = np.where(zone & (layer_part < 0), part, layer_part)
+        layer_side = np.where(zone, LEGS[k], layer_side)
+        at = copies - (len(verts) - len(copies) - 2 * m)
+        layer_sheets += [(np.full(m, 2), lx, ly), (np.full(m, 2), lx, ly), (np.zeros(len(copies)), lx[at], ly[at])]
+        layer_front += [np.zeros(2 * m, bool), np.ones(len(copies), bool)]
 
     # colour: front = the photo (band refilled); back = the unseen side; one [front | back] texture
     front_tex = refill_band(rgb, mask)
@@ -781,16 +959,24 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     back_tex = unseen_side_colours(front_tex, mask, fp, bp, head_colour, fs, bs, skin, loose_full, profile,
                                    source_rows=far_rows, back_face=back_face, face_skin=face_skin,
                                    hair_curtain=not facing_away)
-    texture = (np.clip(np.concatenate([front_tex, back_tex], axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
-    u = px * to_full / size
-    v = 1.0 - py * to_full / size
-    uvs = np.concatenate([np.stack([0.5 * u, v], 1), np.stack([0.5 + 0.5 * u, v], 1)]).astype(np.float32)
+    panels = [front_tex, back_tex]
+    if layer_sheets:  # the layers' own panel: the unseen side's colours of the legs they hold
+        lp = smooth_labels(layer_part, size).astype(np.float32)
+        lp = np.where(lp >= 0, lp, bp).astype(np.int64)
+        ls = cv2.resize(layer_side.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST).astype(np.int64)
+        ls = np.where(lp >= 0, np.where(ls != 0, ls, bs), bs)
+        panels.append(unseen_side_colours(front_tex, mask, fp, lp, head_colour, fs, ls, skin, loose_full, profile,
+                                          face_skin=face_skin, hair_curtain=not facing_away))
+    texture = (np.clip(np.concatenate(panels, axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
+    # (panel, pixel x, pixel y) of each sheet's vertices, in their order: front, back, each layer's two
+    sheets = [(0, px, py), (1, px, py)] + layer_sheets
+    uvs = np.concatenate([np.stack([(panel + x * to_full / size) / len(panels), 1.0 - y * to_full / size], 1)
+                          for panel, x, y in sheets]).astype(np.float32)
 
     # skinning: nearest body vertex
     skin_j, skin_w = nearest_skinning(verts, np.asarray(vertices, np.float64), skinning_weights)
-    front_flags = np.concatenate([np.ones(n, bool), np.zeros(n, bool)])
+    front_flags = np.concatenate([np.ones(n, bool), np.zeros(n, bool)] + layer_front)
     mesh = TexturedMesh(verts.astype(np.float32), faces_out.astype(np.int32), uvs=uvs, texture=texture)
-    body_fraction = float(body.sum() / max(1, (person_g & domain).sum()))
     return ClothedProxy(mesh=mesh, skin_joints=skin_j, skin_weights=skin_w, front=front_flags,
                         body_fraction=min(1.0, body_fraction))
 

@@ -670,6 +670,71 @@ def test_a_skirt_is_one_cross_section_around_both_legs_and_shorts_are_no_skirt(m
     assert not found[-1].any()
 
 
+def _torso_on_legs_in_profile(size: int = 128, skirt: bool = False):
+    """The torso on two legs photographed from the side (azimuth 90: one leg behind the other, 6 cm of
+    air between them), as ``(proxy, cameras)``: the proxy built from that photo's mask (with a skirt
+    0.7 m wide from the hips down 0.4 m), the cameras at azimuth 90 (the photo) and 0 (the front)."""
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.clothed_proxy import build_clothed_proxy
+
+    v, f, w, names = _torso_on_legs()
+    cams = orbit_cameras(2, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([90.0, 0.0]))
+    photo = cams.subset([0])
+    mask = _silhouette(v, f, photo)
+    if skirt:
+        mask |= _silhouette(*_tube(0.35, 0.4, (0.0, 0.05, 0.0)), photo)
+    rgb = np.full((size, size, 3), 0.3, np.float32)
+    return build_clothed_proxy(v, f, w, names, photo, rgb, mask.astype(np.float32), grid=size), cams, mask
+
+
+def test_a_leg_behind_the_other_is_a_layer_of_its_own(monkeypatch):
+    """The torso on two legs photographed from the side: seen from the front, air shows between the
+    legs (the far leg is a layer of its own: 4 background pixels in a row across the gap at mid-shin, as
+    many as the 6 cm gap spans); with the layers off (LAYER_MIN above 1) the sheets join the legs into one
+    slab (none). The photo's view is unchanged: its silhouette is the mask either way (IoU above 0.97)."""
+    from humanvdm_core import clothed_proxy
+    from humanvdm_core.render import render_views
+
+    torch.set_num_threads(1)
+
+    def front_and_photo() -> tuple[np.ndarray, float]:
+        proxy, cams, mask = _torso_on_legs_in_profile()
+        alpha = render_views(proxy.mesh, cams, (1.0, 1.0, 1.0)).rgba[..., 3] > 0.5
+        return alpha[1], float((alpha[0] & mask).sum() / (alpha[0] | mask).sum())
+
+    def air_between_the_legs(alpha: np.ndarray) -> int:
+        """Background pixels of the 16 around the front view's centre line, at mid-shin height."""
+        rows = np.nonzero(alpha.any(axis=1))[0]
+        return int((~alpha[int(rows.min() + 0.75 * (rows.max() - rows.min())), 56:72]).sum())
+
+    layered, iou_layered = front_and_photo()
+    monkeypatch.setattr(clothed_proxy, "LAYER_MIN", 2.0)
+    slab, iou_slab = front_and_photo()
+    assert iou_layered > 0.97 and iou_slab > 0.97, (iou_layered, iou_slab)
+    assert air_between_the_legs(layered) >= 3 and air_between_the_legs(slab) == 0, (
+        air_between_the_legs(layered), air_between_the_legs(slab))
+
+
+def test_legs_in_a_skirt_seen_from_the_side_are_no_layers(monkeypatch):
+    """The same legs photographed from the side in a skirt: the skirt wraps them (wrapped_rows), so no
+    layer reaches into its rows; below its hem the shins are layers. Without the garment test, layers
+    form inside the skirt too (measured 0 layer vertices in its rows, 306 without; 395 below its hem)."""
+    from humanvdm_core import clothed_proxy
+
+    torch.set_num_threads(1)
+
+    def layer_vertices_in_the_skirt() -> tuple[int, int]:
+        proxy, _, _ = _torso_on_legs_in_profile(skirt=True)
+        n = int(np.argmin(proxy.front))  # the front sheet's vertices come first, then the back sheet's
+        y = proxy.mesh.vertices[2 * n:, 1]
+        return int(((y < 0.0) & (y > -0.3)).sum()), int((y < -0.4).sum())
+
+    inside, below = layer_vertices_in_the_skirt()
+    monkeypatch.setattr(clothed_proxy, "wrapped_rows", lambda maps, body, domain, mpp: np.zeros(len(domain), bool))
+    inside_unwrapped, _ = layer_vertices_in_the_skirt()
+    assert inside == 0 and below > 0 and inside_unwrapped > 100, (inside, below, inside_unwrapped)
+
+
 def test_hands_hanging_at_a_skirts_sides_do_not_pinch_it():
     """The skirt of the test above with two hands hanging at its sides, inside its outline: in the hands'
     rows the skirt is as deep from the side as below them (measured 0.61 vs 0.63 m; 0.32 m when a row's
