@@ -884,11 +884,11 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     layer_side = np.zeros((g, g), np.int64)
     layer_sheets = []  # (panel per vertex, pixel x, pixel y) of each layer's vertices
     layer_front = []  # whether each layer vertex is seen in the input view
+    grow = np.ones((5, 5), np.uint8)  # two grid pixels
     for k in np.nonzero(layers.any(axis=(1, 2)))[0]:
         seen = present[k]
         l_near = nearest_fill(near[k], seen)  # out to the mask beside the leg
         l_far = np.maximum(nearest_fill(far[k], seen), l_near)
-        grow = np.ones((5, 5), np.uint8)
         zone = ((cv2.dilate((layers[k] | owned[k]).astype(np.uint8), grow).astype(bool) & seen)
                 | cv2.dilate(owned[k].astype(np.uint8), CROSS.astype(np.uint8)).astype(bool))
         zone &= domain_all
@@ -914,9 +914,9 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         l_faces = grid_faces(index)
         # the near side's triangles over what the photo shows of the leg take the photo's colours, through
         # copies of their vertices (the rest takes the unseen side's)
-        shown = owned[k][lr, lc][l_faces - len(verts) + 2 * m].all(axis=1)
-        copies, inverse = np.unique(l_faces[shown], return_inverse=True)
-        l_faces[shown] = len(verts) + inverse.reshape(-1, 3)
+        in_photo = owned[k][lr, lc][l_faces - len(verts) + 2 * m].all(axis=1)
+        copies, inverse = np.unique(l_faces[in_photo], return_inverse=True)
+        l_faces[in_photo] = len(verts) + inverse.reshape(-1, 3)
         verts = np.concatenate([verts, verts[copies]])
         faces_out = np.concatenate([faces_out, l_faces, grid_faces(index)[:, ::-1] + m])
         layer_part = np.where(zone & (layer_part < 0), part, layer_part)
@@ -968,7 +968,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         panels.append(unseen_side_colours(front_tex, mask, fp, lp, head_colour, fs, ls, skin, loose_full, profile,
                                           face_skin=face_skin, hair_curtain=not facing_away))
     texture = (np.clip(np.concatenate(panels, axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
-    # (panel, pixel x, pixel y) of each sheet's vertices, in their order: front, back, each layer's two
+    # (panel, pixel x, pixel y) of each sheet's vertices, in their order: front, back, and per layer its near
+    # and far sheet and the copies of its near sheet's vertices over what the photo shows of it
     sheets = [(0, px, py), (1, px, py)] + layer_sheets
     uvs = np.concatenate([np.stack([(panel + x * to_full / size) / len(panels), 1.0 - y * to_full / size], 1)
                           for panel, x, y in sheets]).astype(np.float32)
