@@ -107,8 +107,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    above, the back sheet lies lower than the front along each ray. The body parts' map is resized from
    the grid to the texture with smooth borders (:func:`smooth_labels`), so the hairline at the back of
    the neck is not the grid's staircase. With layers, a third panel (``[front | back | layers]``)
-   holds the unseen side's colours of the legs they hold; a layer's near side takes the photo's where
-   the photo shows that leg (step 7).
+   holds the unseen side's colours of the legs they hold, on a layer's near side where the other leg
+   hides it; elsewhere (what the photo shows of it, and behind the sheets' front) it takes the photo's.
 
 9. **Skinning.** Every proxy vertex takes the skinning weights of its nearest body vertex (top
    :data:`SKIN_INFLUENCES` joints), so later stages can pose it with the body.
@@ -912,9 +912,10 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         for depth in (l_mid - l_half, l_mid + l_half):
             verts = np.concatenate([verts, (l_rays * depth[lr, lc][:, None]) @ c2w[:3, :3].T + c2w[:3, 3]])
         l_faces = grid_faces(index)
-        # the near side's triangles over what the photo shows of the leg take the photo's colours, through
-        # copies of their vertices (the rest takes the unseen side's)
-        in_photo = owned[k][lr, lc][l_faces - len(verts) + 2 * m].all(axis=1)
+        # the near side's triangles outside where the other leg hides it take the photo's colours, through
+        # copies of their vertices (behind the other leg: the unseen side's); where the sheets lie before
+        # them they are not seen, and along the near leg's outline the photo then shows no unseen colours
+        in_photo = ~layers[k][lr, lc][l_faces - len(verts) + 2 * m].any(axis=1)
         copies, inverse = np.unique(l_faces[in_photo], return_inverse=True)
         l_faces[in_photo] = len(verts) + inverse.reshape(-1, 3)
         verts = np.concatenate([verts, verts[copies]])
