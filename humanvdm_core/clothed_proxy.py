@@ -86,8 +86,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    seen from the front as one block from hip to feet. Where a leg starts more than :data:`LAYER_GAP`
    behind the other one's far side (the region closed and opened by :data:`LAYER_KERNEL`, at least
    :data:`LAYER_MIN` of the body's pixels; not in rows where the mask reaches beyond the legs as one
-   garment wrapping them, :func:`wrapped_rows`: a skirt, a dress, a coat; not with ``legs_hidden``),
-   that leg is a layer: the sheets hold what lies before it (their far side is the body's farthest
+   garment wrapping them, :func:`wrapped_rows`: a skirt, a dress, a coat; not with ``legs_hidden``;
+   :func:`leg_layers`), that leg is a layer: the sheets hold what lies before it (their far side is the body's farthest
    without that leg there; no :data:`ARM_REACH` limit there), and the leg gets its own closed two-sheet
    surface from its own depths plus its clothing (:func:`layer_surface`) over where it is hidden,
    reaching two grid pixels into where the sheets hold it, and over what the photo shows of it within
@@ -609,6 +609,37 @@ def wrapped_rows(maps: dict, body: np.ndarray, domain: np.ndarray, metres_per_px
     return out
 
 
+def leg_layers(maps: dict, body: np.ndarray, domain: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which leg is a layer where (contract step 7): per leg of :data:`LEGS` (2, H, W bool) where it starts
+    more than :data:`LAYER_GAP` behind the other leg's far side, as whole regions (closed, then opened by
+    :data:`LAYER_KERNEL`; at least :data:`LAYER_MIN` of the ``body`` pixels), not in rows one garment
+    wraps (:func:`wrapped_rows`); and what each layered leg takes from the sheets (2, H, W bool): where
+    the photo shows it within :data:`LAYER_OWN` of the other leg, with the ``domain``'s pixels up to
+    :data:`LAYER_FRINGE` beyond the body there. ``maps``: :func:`body_maps`' (grid ``fx`` pixels of focal
+    length)."""
+    near, far = maps["leg_near"], maps["leg_far"]
+    present = near > 0
+    layers = np.zeros(near.shape, bool)
+    open_ = body & ~wrapped_rows(maps, body, domain, np.where(body, maps["front"], 1.0) / fx)[:, None]
+    for k in range(len(LEGS)):
+        behind = present[k] & present[1 - k] & (near[k] > far[1 - k] + LAYER_GAP) & open_
+        # whole regions, not a pixel here and there where the legs' gap comes and goes
+        behind = cv2.morphologyEx(behind.astype(np.uint8), cv2.MORPH_CLOSE, LAYER_KERNEL)
+        layers[k] = cv2.morphologyEx(behind, cv2.MORPH_OPEN, LAYER_KERNEL).astype(bool) & present[k] & open_
+    layers &= (layers.sum(axis=(1, 2)) >= LAYER_MIN * body.sum())[:, None, None]
+    owned = np.zeros(near.shape, bool)
+    if layers.any():
+        shown = body & np.isin(maps["front_part"], [PARTS.index("legs"), PARTS.index("feet")])
+        reach = cv2.distanceTransform((~(present[0] & present[1])).astype(np.uint8), cv2.DIST_L2, 5)
+        owner = np.zeros(body.shape, np.float32)
+        for k in np.nonzero(layers.any(axis=(1, 2)))[0]:
+            owner[shown & (maps["front_side"] == LEGS[k]) & open_ & (reach <= LAYER_OWN)] = k + 1
+        beside = domain & ~body & (cv2.distanceTransform((~body).astype(np.uint8), cv2.DIST_L2, 5) <= LAYER_FRINGE)
+        owner = np.where(beside, nearest_fill(owner, body), owner).astype(np.int64)
+        owned = (owner[None] == np.arange(1, len(LEGS) + 1)[:, None, None]) & domain[None]
+    return layers, owned
+
+
 def pixel_rays(camera: Cameras) -> np.ndarray:
     """(H, W, 3): per pixel centre of ``camera`` (one camera), its ray in camera space at depth 1."""
     yy, xx = np.mgrid[0:camera.height, 0:camera.width]
@@ -729,33 +760,14 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     # the fitted arms and hands as the nearest surface, less those a contact places
     limb_front = body & np.isin(maps["front_part"], limbs) & ~placed("front")
     # a leg behind the other (the trailing leg of a stride, the far leg of a person seen in profile) is a
-    # layer of its own: the sheets hold what lies before it, and it gets its own closed surface (below), so
-    # the legs stand apart from every side. Not inside loose clothing or a skirt (one garment wraps the
-    # legs), nor where the legs are hidden (their fitted depth is a guess)
+    # layer of its own (contract step 7), not where the legs are hidden (their fitted depth is a guess)
     near, far = maps["leg_near"], maps["leg_far"]
     present = near > 0
-    layers = np.zeros(near.shape, bool)
-    if not legs_hidden:
-        open_ = body & ~wrapped_rows(maps, body, domain, np.where(body, maps["front"], 1.0) / fx)[:, None]
-        for k in range(len(LEGS)):
-            behind = present[k] & present[1 - k] & (near[k] > far[1 - k] + LAYER_GAP) & open_
-            # whole regions, not a pixel here and there where the legs' gap comes and goes
-            behind = cv2.morphologyEx(behind.astype(np.uint8), cv2.MORPH_CLOSE, LAYER_KERNEL)
-            layers[k] = cv2.morphologyEx(behind, cv2.MORPH_OPEN, LAYER_KERNEL).astype(bool) & present[k] & open_
-        layers &= (layers.sum(axis=(1, 2)) >= LAYER_MIN * body.sum())[:, None, None]
+    if legs_hidden:
+        layers, owned = np.zeros(near.shape, bool), np.zeros(near.shape, bool)
+    else:
+        layers, owned = leg_layers(maps, body, domain, fx)
     split = layers.any(axis=0)
-    # what the photo shows of a layered leg (where it is the body's nearest surface) within LAYER_OWN of the
-    # other leg, and the mask just beside it, are the layer's too: the sheets end at the near leg's outline
-    owned = np.zeros(near.shape, bool)
-    if split.any():
-        shown = body & np.isin(maps["front_part"], [PARTS.index("legs"), PARTS.index("feet")])
-        reach = cv2.distanceTransform((~(present[0] & present[1])).astype(np.uint8), cv2.DIST_L2, 5)
-        owner = np.zeros((g, g), np.float32)
-        for k in np.nonzero(layers.any(axis=(1, 2)))[0]:
-            owner[shown & (maps["front_side"] == LEGS[k]) & open_ & (reach <= LAYER_OWN)] = k + 1
-        beside = domain & ~body & (cv2.distanceTransform((~body).astype(np.uint8), cv2.DIST_L2, 5) <= LAYER_FRINGE)
-        owner = np.where(beside, nearest_fill(owner, body), owner).astype(np.int64)
-        owned = (owner[None] == np.arange(1, len(LEGS) + 1)[:, None, None]) & domain[None]
     # an arm in front of or beside the body stands at most ARM_REACH out of the body's nearest surface: a
     # single photo's arm depth is the least certain part of the fit, and the proxy fills everything between
     # an arm and the body behind it. The pull fades out over ARM_NEAR from the body's silhouette, so an
