@@ -242,9 +242,11 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
 
     # one part (and side) per face, drawn flat: codes interpolated across a face between two parts pass
     # through the codes of others (torso -> legs through head and hands: a line of them along the waist)
-    code = np.repeat(((_face_mode(parts[faces]) + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
+    face_part = _face_mode(parts[faces])
+    face_side = _face_mode(np.asarray(sides)[faces]) if sides is not None else np.zeros(len(faces), np.int64)
+    code = np.repeat(((face_part + 0.5) / len(PARTS))[:, None], 3, axis=1).astype(np.float32)
     if sides is not None:
-        code[:, 1] = (_face_mode(np.asarray(sides)[faces]) + 1.5) / 3.0
+        code[:, 1] = (face_side + 1.5) / 3.0
     code[:, 2] = 0.25 + 0.5 * (_face_mode(np.asarray(face, np.int64)[faces]) if face is not None else 0)
     code = np.repeat(code, 3, axis=0)
     flat = np.arange(3 * len(faces)).reshape(-1, 3)
@@ -290,8 +292,7 @@ def body_maps(vertices: np.ndarray, faces: np.ndarray, parts: np.ndarray, camera
     # each leg (LEGS: left, right) alone, its nearest and farthest depth, and the farthest depth of the body
     # without it (with that surface's part and side): what lies along a ray besides the leg (a leg behind
     # the other, contract step 7); 0 (-1 for a part) where empty
-    is_leg = np.isin(_face_mode(parts[faces]), [PARTS.index("legs"), PARTS.index("feet")])
-    face_side = _face_mode(np.asarray(sides)[faces]) if sides is not None else np.zeros(len(faces), np.int64)
+    is_leg = np.isin(face_part, [PARTS.index("legs"), PARTS.index("feet")])
     legs = {"leg_near": [], "leg_far": [], "leg_part": [], "rest_far": [], "rest_part": [], "rest_side": []}
     for side in LEGS:
         own = is_leg & (face_side == side)
