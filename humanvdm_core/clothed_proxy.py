@@ -96,7 +96,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    the body does not reach then goes with the layer too). A layer's near side stays
    :data:`LAYER_BEHIND` behind the sheets' front where both are: the input view still shows the photo.
 8. **Colour** (one texture, ``[front | back]`` side by side, ``size`` x ``2 size``): the photo on the
-   front, its silhouette band refilled from inside; on the back (the unseen side) per body part and
+   front, its silhouette band refilled from inside (the head's keeps the hair the photo shows there,
+   where hair and face differ); on the back (the unseen side) per body part and
    row the median colour of what the photo shows of that part, without prints, logos, held objects or
    the skin of arms held before it, hands in their own colour and the head's back in the hair's, where
    its farthest surface is the face (the far cheek of a person turned from the camera: the body's head
@@ -130,8 +131,10 @@ from humanvdm_core.body.parts import PARTS, face_vertices, vertex_parts, vertex_
 from humanvdm_core.cameras import Cameras
 from humanvdm_core.image_fill import CROSS, harmonic_extension, nearest_fill, outside_of, row_nearest
 from humanvdm_core.proxy_colours import (
+    HAIR_DISTANCE,
     distinct_hair_curtain,
     face_colour,
+    hair_in_band,
     hands_skin,
     refill_band,
     unseen_side_colours,
@@ -949,6 +952,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     bknown = bp >= 0
     bp = np.where(bknown, bp, fp).astype(np.int64)
     skin = face_colour(front_tex, mask, fp, head_colour)  # before the head's own colour stands in for hair
+    if skin is not None and np.linalg.norm(skin - head_colour) > HAIR_DISTANCE:  # the temples' hair
+        front_tex = hair_in_band(front_tex, rgb, mask, (fp == PARTS.index("head")), head_colour)
     face_skin = hands_skin(front_tex, mask, fp) if facing_away else skin  # a photo from behind shows no face
     if head_colour is None:
         head_pixels = (fp == PARTS.index("head")) & (mask > 0.5)

@@ -5,7 +5,8 @@ Step 8 of :func:`humanvdm_core.clothed_proxy.build_clothed_proxy`'s contract; on
 
 * front: the photo, its silhouette band (:data:`BAND_PX` px) eroded and refilled from inside, blurred
   there (:func:`refill_band`), so no background colour smears onto the edge and the edge's rows do not run
-  out as streaks over the rim a side view sees;
+  out as streaks over the rim a side view sees; in the head's band, where the photo shows hair there (the
+  temples), the hair's colour instead of the skin inside it (:func:`hair_in_band`);
 * back (the unseen side, :func:`unseen_side_colours`): each back pixel takes, for its body part (the
   part of the farthest body surface there; outside the body, the nearest part), the median colour of
   that part's visible pixels at the same height (:func:`row_medians`, :data:`PRINT_BAND`; a row where
@@ -87,6 +88,31 @@ def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX, band_
     # the band seen from the side stretches over the sheets' steep rim: blurred, its rows blend instead of
     # running out as streaks of the edge's colours
     return np.where((~inner)[..., None], cv2.GaussianBlur(out, (0, 0), band_blur), out)
+
+
+def hair_in_band(front: np.ndarray, photo: np.ndarray, mask: np.ndarray, head: np.ndarray, hair: np.ndarray,
+                 band_px: int = BAND_PX, band_blur: float = BAND_BLUR) -> np.ndarray:
+    """``front`` (the photo with its silhouette band refilled, :func:`refill_band`) where the photo shows
+    hair in the head's band: the hair's colour ``hair`` there, not the face's skin refilled from inside. At
+    the temples the hair seen from the front is a strip a few pixels wide along the head's outline; the
+    band's refill replaced it with the forehead's and the cheeks' skin, which a side view then saw
+    stretched over the side of the head up to the ears. A band pixel of the ``head`` (H, W bool) is hair
+    where most of the band's pixels within ``band_px`` of it that lie a pixel or more inside the outline
+    (the outline's own pixels mix in the background) are within :data:`HAIR_DISTANCE` of ``hair``; along
+    the band it blends to ``hair`` over ``band_blur`` px. Outside the head's band ``front`` is returned unchanged."""
+    person = mask > 0.5
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
+    band = person & ~cv2.erode(person.astype(np.uint8), kernel).astype(bool) & head
+    if not band.any():
+        return front
+    probe = band & cv2.erode(person.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    near = probe & (np.linalg.norm(photo - np.asarray(hair, np.float32)[None, None], axis=2) < HAIR_DISTANCE)
+    window = (2 * band_px + 1, 2 * band_px + 1)
+    share = cv2.boxFilter(near.astype(np.float32), -1, window, normalize=False) / np.maximum(
+        cv2.boxFilter(probe.astype(np.float32), -1, window, normalize=False), 1.0)
+    hairy = cv2.GaussianBlur((band & (share >= 0.5)).astype(np.float32), (0, 0), band_blur)
+    weight = hairy / np.maximum(cv2.GaussianBlur(band.astype(np.float32), (0, 0), band_blur), 1e-6) * band
+    return front * (1.0 - weight[..., None]) + np.asarray(hair, np.float32)[None, None] * weight[..., None]
 
 
 def median_colour(pixels: np.ndarray) -> np.ndarray:

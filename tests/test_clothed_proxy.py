@@ -1539,6 +1539,36 @@ def test_the_refilled_band_keeps_no_background_and_no_row_streaks():
     np.testing.assert_array_equal(out[inner], photo[inner])
 
 
+def test_the_hair_at_the_temples_stays_hair_in_the_refilled_band():
+    """A disc "head" on a green background, skin inside, with a strip of dark hair 3 px wide along its
+    outline in the upper half (the temples) and none in the lower half (the cheeks): refilling the band
+    from inside painted the temples skin, which a side view sees stretched over the side of the head.
+    :func:`hair_in_band` gives the upper band back the hair's colour and leaves the cheeks', the inside's
+    and everything outside the ``head`` as they were."""
+    from humanvdm_core.proxy_colours import BAND_PX, hair_in_band, refill_band
+
+    size = 128
+    yy, xx = np.mgrid[0:size, 0:size]
+    r = np.sqrt((yy - 64.0) ** 2 + (xx - 64.0) ** 2)
+    mask = (r < 50).astype(np.float32)
+    skin, hair = np.array([0.85, 0.65, 0.5], np.float32), np.array([0.15, 0.1, 0.08], np.float32)
+    photo = np.broadcast_to(skin, (size, size, 3)).copy()
+    photo[(r >= 47) & (yy < 56)] = hair  # the temples' strip
+    photo[mask < 0.5] = (0.0, 1.0, 0.0)
+    refilled = refill_band(photo, mask)
+    head = np.ones((size, size), bool)
+    out = hair_in_band(refilled, photo, mask, head, hair)
+    band = (mask > 0.5) & (r >= 50 - BAND_PX)
+    temples, cheeks = band & (yy < 40) & (np.abs(xx - 64) > 30), band & (yy > 80) & (np.abs(xx - 64) > 20)
+    assert np.abs(refilled[temples] - hair).sum(axis=1).mean() > 0.8  # refilled from inside: skin
+    assert np.abs(out[temples] - hair).sum(axis=1).mean() < 0.2  # now hair
+    np.testing.assert_allclose(out[cheeks], refilled[cheeks], atol=1e-6)
+    inner = r < 50 - BAND_PX - 1.5
+    np.testing.assert_array_equal(out[inner], refilled[inner])
+    # outside the head (a shoulder's outline) nothing changes
+    np.testing.assert_array_equal(hair_in_band(refilled, photo, mask, np.zeros_like(head), hair), refilled)
+
+
 def test_long_hair_beside_the_face_hangs_with_the_hair_below_it():
     """A grid "person" (head rows 8-24, shoulders below) with dark hair over the head and down beside the
     face to row 36, on a red shirt: after :func:`hang_hair` the hair beside the face below the head's
