@@ -496,6 +496,37 @@ def test_a_real_person_standing_still_keeps_straight_legs_below_the_hips():
             assert max(bends) > 20.0 and feet < -0.04, (bends, feet)
 
 
+@pytest.mark.slow
+def test_a_turned_person_is_fitted_as_turned_as_the_detector_reads():
+    """RenderPeople Eric (a real scan) turned 30 deg from the camera, as the photo: a turned person's
+    shoulders look narrower, which the fit explained by narrower shoulders as much as by a turn. MediaPipe
+    turns his shoulders 25.5 deg; without the turn term the fit turned them 12.9 (in the protocol's 768 px
+    photo 17.7 of 26.3), with it 23.2, about the term's free 2 deg short of MediaPipe's. The hips, which
+    the fit turns about as far as MediaPipe, move 3 deg (29.2 -> 32.0)."""
+    from humanvdm_core.body.fit import TURN_FREE_DEG, observe_frames
+
+    rgba, cam = _scan_photo("renderpeople_rp_eric_rigged_001", 576, yaw_deg=-30.0)
+    obs, failed = observe_frames(rgba[None], [0])
+    assert obs and not failed, failed
+    w2c = cam.w2c[0][:3, :3]
+
+    def turn_deg(line: np.ndarray) -> float:  # out of the image plane about the vertical, camera axes
+        return float(np.degrees(np.arctan2(line[2], abs(line[0]))))
+
+    world = obs[0].world_keypoints
+    seen = turn_deg(world[5] - world[6])
+    assert seen < -20.0, seen  # the detector reads a clear turn
+    turns = {}
+    for weight in (0.0, None):
+        options = {} if weight is None else {"turn_weight": weight}
+        c = _fit(obs[0], cam, **options).output.coco17[0].numpy().astype(np.float64) @ w2c.T
+        turns[weight] = (turn_deg(c[5] - c[6]), turn_deg(c[11] - c[12]))
+    (shoulders_off, hips_off), (shoulders, hips) = turns[0.0], turns[None]
+    assert shoulders_off > seen + 5.0, (shoulders_off, seen)  # without the term: turned well short
+    assert shoulders <= seen + TURN_FREE_DEG + 1.5, (shoulders, seen)
+    assert abs(hips - hips_off) < 5.0, (hips, hips_off)
+
+
 def test_standing_still_tells_a_stance_from_a_stride_a_seat_and_hidden_legs():
     """standing_still on hand-made keypoints (a person 400 px tall)."""
     from humanvdm_core.body.landmarks import standing_still
