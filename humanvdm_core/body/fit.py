@@ -110,7 +110,9 @@ Contract:
     less than MediaPipe did (which itself reads them short), and the bone-direction term's ``1 - cos``
     hardly pulls at a few degrees. Only a shortfall costs: where the fit turns further (the hips of a
     stride), it keeps its own. Below :data:`TURN_SEEN_DEG` the detector's turn is noise as often as
-    not (up to 10 deg on synthetic people facing the camera).
+    not (up to 10 deg on synthetic people facing the camera); beyond :data:`TURN_MAX_DEG` (near
+    profile) the pull twisted the hips against the legs; a line is never pulled through facing the
+    camera, nor where the left/right decisions mirrored the detector's landmarks.
 
 - The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
   :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
@@ -651,12 +653,14 @@ class _Problem:
         out of each camera's image plane, about its vertical, than the detector's do where it reads a
         clear turn: per line, with ``t = atan2(z, |x|)`` of the line in camera axes (0 in the image
         plane, facing the camera or away from it; +-90 deg in profile), ``(|t_seen| - |t_model| -
-        TURN_FREE_DEG)`` where positive, in radians, squared, weighted by the line's confidence, where the
-        model's line turns the detector's way (it is never pulled through facing the camera: a turn's
-        way is the 3D landmarks' least certain reading, the 2D keypoints and the face tell it); only in frames where the detector turns both lines between
-        :data:`TURN_SEEN_DEG` and :data:`TURN_MAX_DEG`, the same way, and the way its own left and right say (the left/right
-        decisions, :meth:`decide_swaps`, may exchange them: a fit that has turned its back on the camera
-        reads the detector's turn mirrored). 0 without 3D landmarks."""
+        TURN_FREE_DEG)`` where positive, in radians, squared, weighted by the line's confidence.
+
+        Only where the model's line already turns the detector's way: it is never pulled through facing
+        the camera (a turn's way is the 3D landmarks' least certain reading; the 2D keypoints and the
+        face tell it). Only in frames where the detector turns both lines between :data:`TURN_SEEN_DEG`
+        and :data:`TURN_MAX_DEG`, the same way, and the way its own left and right say (the left/right
+        decisions, :meth:`decide_swaps`, may exchange them: after a fit that has turned its back on the
+        camera, the detector's turn reads mirrored). 0 without 3D landmarks."""
         sel = list(TURN_BONES)
         if coco17.dim() == 2:
             coco17 = coco17[None].expand(self.w2c.shape[0], -1, -1)
