@@ -337,13 +337,17 @@ def grid_faces(index: np.ndarray) -> np.ndarray:
     return np.concatenate(tris)
 
 
-def layer_surface(near: np.ndarray, far: np.ndarray, zone: np.ndarray, extra: np.ndarray
+def footprint_border(region: np.ndarray) -> np.ndarray:
+    """(H, W bool): the pixels of ``region`` with a 4-neighbour outside it, where a surface's two sheets meet."""
+    return region & ~cv2.erode(region.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+
+
+def layer_surface(near: np.ndarray, far: np.ndarray, zone: np.ndarray, border: np.ndarray, extra: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
     """A closed two-sheet surface of a layer over ``zone`` (H, W bool): mid-depth and half-thickness per
     pixel from its ``near`` / ``far`` depths, ``extra`` metres (clothing) added to both sides, and 0 on
-    the zone's border so its two sheets meet there."""
-    inner = cv2.erode(zone.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
-    return 0.5 * (near + far), np.where(inner, 0.5 * (far - near) + extra, 0.0)
+    the zone's ``border`` (:func:`footprint_border`) so its two sheets meet there."""
+    return 0.5 * (near + far), np.where(zone & ~border, 0.5 * (far - near) + extra, 0.0)
 
 
 # ----------------------------------------------------------------------------- thickness
@@ -798,7 +802,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         maps["back_side"] = np.where(there, maps["rest_side"][k], maps["back_side"])
         maps["back_face"] = maps["back_face"] & ~there
     body_fraction = float(body.sum() / max(1, (person_g & domain).sum()))
-    domain_all, border_all = domain, domain & ~cv2.erode(domain.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+    domain_all, border_all = domain, footprint_border(domain)
     if owned.any():  # the sheets cover the rest; a bit of it the body does not reach goes with the layer
         rest = domain & ~owned.any(axis=0)
         _, pieces = cv2.connectedComponents(rest.astype(np.uint8), connectivity=4)
@@ -861,7 +865,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         reach = horizontal_reach(cam_g)
         hung = harmonic_extension(np.where(fitted, mid_body * reach, 0.0), fitted, domain) / reach
         mid = hang * hung + (1.0 - hang) * mid
-    border = domain & ~cv2.erode(domain.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+    border = footprint_border(domain)
     t_holes = harmonic_extension(t_body, body, domain) if holes.any() else t_body
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
     mid, half = remove_spikes(mid, half, domain, border)
@@ -914,8 +918,8 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
             extra = np.where(part == PARTS.index(name), metres, extra)
         # behind the sheets' front where both are (the photo shows the sheets there)
         l_near = np.where(domain, np.maximum(l_near, mid - half + LAYER_BEHIND), l_near)
-        l_mid, l_half = layer_surface(l_near, np.maximum(l_far, l_near), zone, extra)
-        l_border = zone & ~cv2.erode(zone.astype(np.uint8), CROSS.astype(np.uint8)).astype(bool)
+        l_border = footprint_border(zone)
+        l_mid, l_half = layer_surface(l_near, np.maximum(l_far, l_near), zone, l_border, extra)
         l_mid, l_half = remove_spikes(l_mid, l_half, zone, l_border)
         l_mid, l_half = smooth_edge(l_mid, l_half, zone, l_border)
         lr, lc = np.nonzero(zone)

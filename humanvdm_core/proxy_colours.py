@@ -74,14 +74,19 @@ HAIR_SHARE = 0.2  # ... when at least this share of the band is left
 HAIR_UPPER = 0.4  # else the head above this fraction of its projected height (down from its top) is searched
 
 
+def inside_band(person: np.ndarray, band_px: int = BAND_PX) -> np.ndarray:
+    """(H, W bool): ``person`` less its silhouette band, ``band_px`` pixels deep (an elliptical erosion)."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
+    return cv2.erode(person.astype(np.uint8), kernel).astype(bool)
+
+
 def refill_band(rgb: np.ndarray, mask: np.ndarray, band_px: int = BAND_PX, band_blur: float = BAND_BLUR) -> np.ndarray:
     """``rgb`` with the mask's silhouette band (``band_px``) and everything outside replaced by the
     nearest pixel further inside, so edge pixels never mix in the background, and then blurred (a Gaussian
     of ``band_blur`` px) there: each row's colour at the edge, which a side view sees stretched over the
     proxy's rim, blends with its neighbours' instead of running out as a streak."""
     person = mask > 0.5
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
-    inner = cv2.erode(person.astype(np.uint8), kernel).astype(bool)
+    inner = inside_band(person, band_px)
     if inner.sum() < 64:
         inner = person
     out = nearest_fill(rgb, inner)
@@ -101,8 +106,7 @@ def hair_in_band(front: np.ndarray, photo: np.ndarray, mask: np.ndarray, head: n
     (the outline's own pixels mix in the background) are within :data:`HAIR_DISTANCE` of ``hair``; along
     the band it blends to ``hair`` over ``band_blur`` px. Outside the head's band ``front`` is returned unchanged."""
     person = mask > 0.5
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1, 2 * band_px + 1))
-    band = person & ~cv2.erode(person.astype(np.uint8), kernel).astype(bool) & head
+    band = person & ~inside_band(person, band_px) & head
     if not band.any():
         return front
     probe = band & cv2.erode(person.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)

@@ -573,6 +573,19 @@ class _Problem:
         up = torch.tensor([0.0, 1.0, 0.0], dtype=dt)
         seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
         self.torso_seen = torch.where(self.bone_conf[:, SPINE_BONE, None] > 0, trusted_lean(seen, up, self.front), up)
+        # (F, 2) for turn_term: the detector's shoulder and hip lines' turn, and their weights where it reads a
+        # clear turn (both lines within the range, the same way, the way its own left and right say)
+        sel = list(TURN_BONES)
+        lines = self.bone_dir[:, sel]
+        self.turn_seen = torch.atan2(lines[..., 2], lines[..., 0].abs())
+        raw = torch.as_tensor(self.raw_world, dtype=dt)
+        raw = self.bone_end[sel] @ raw - self.bone_start[sel] @ raw
+        own = torch.sign(torch.atan2(raw[..., 2], raw[..., 0].abs()))
+        turn = self.turn_seen.abs()
+        clear = ((turn >= np.radians(TURN_SEEN_DEG)).all(-1) & (turn <= np.radians(TURN_MAX_DEG)).all(-1)
+                 & (torch.sign(self.turn_seen) == own).all(-1)
+                 & (torch.sign(self.turn_seen[:, 0]) == torch.sign(self.turn_seen[:, 1])))
+        self.turn_conf = self.bone_conf[:, sel] * clear[:, None]
 
     def _observed_bones(self, world: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit bone directions (B, 3) of 3D landmarks (17, 3) and their weights (B,): the confidence
@@ -666,18 +679,10 @@ class _Problem:
             coco17 = coco17[None].expand(self.w2c.shape[0], -1, -1)
         cam = coco17 @ self.w2c[:, :3, :3].transpose(1, 2)
         d = self.bone_end[sel] @ cam - self.bone_start[sel] @ cam  # (F, 2, 3)
-        seen = self.bone_dir[:, sel]
         turn = torch.atan2(d[..., 2], d[..., 0].abs())
-        turn_seen = torch.atan2(seen[..., 2], seen[..., 0].abs())
-        raw = torch.as_tensor(self.raw_world, dtype=d.dtype)
-        raw = self.bone_end[sel] @ raw - self.bone_start[sel] @ raw
-        own = torch.sign(torch.atan2(raw[..., 2], raw[..., 0].abs()))  # the detector's own left and right
-        clear = ((turn_seen.abs() >= np.radians(TURN_SEEN_DEG)).all(-1)
-                 & (turn_seen.abs() <= np.radians(TURN_MAX_DEG)).all(-1)
-                 & (torch.sign(turn_seen) == own).all(-1)
-                 & (torch.sign(turn_seen[:, 0]) == torch.sign(turn_seen[:, 1])))  # (F,): the torso turns one way
+        turn_seen = self.turn_seen  # and where it is clear, self.turn_conf (set_swaps)
         same = torch.sign(turn.detach()) == torch.sign(turn_seen)  # never pulled across facing the camera
-        conf = self.bone_conf[:, sel] * clear[:, None] * same
+        conf = self.turn_conf * same
         if float(conf.sum()) <= 0:
             return coco17.sum() * 0.0
         short = torch.relu(turn_seen.abs() - turn.abs() - np.radians(TURN_FREE_DEG))
