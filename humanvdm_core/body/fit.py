@@ -112,7 +112,8 @@ Contract:
     stride), it keeps its own. Below :data:`TURN_SEEN_DEG` the detector's turn is noise as often as
     not (up to 10 deg on synthetic people facing the camera); beyond :data:`TURN_MAX_DEG` (near
     profile) the pull twisted the hips against the legs; a line is never pulled through facing the
-    camera, nor where the left/right decisions mirrored the detector's landmarks.
+    camera, nor where the left/right decisions exchanged the arms' landmarks and not the legs' (or the
+    other way round: the two lines then read a twist).
 
 - The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
   :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
@@ -121,7 +122,10 @@ Contract:
 - Left/right confusion: a keypoint detector often swaps the person's left and right on back and
   side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
   that better agrees with the current 3D estimate is used; it is decided after phase 1 and again
-  during phase 2 (:data:`SWAP_GROUPS`). The 2D keypoints follow the assignment nearer the model's
+  during phase 2 (:data:`SWAP_GROUPS`). Fitting a single photo, where the decisions on the 3D landmarks
+  after phase 1 differ from those it was fitted with, phase 1 runs once more from the start with them
+  (``FitOptions.refit_turn``): a body turned to mirrored shoulder and hip lines is turned the wrong
+  way, and phase 2 cannot turn it back through facing the camera. The 2D keypoints follow the assignment nearer the model's
   projection; the 3D keypoints are decided on their own, by which assignment's bones point more like
   the model's (in a side view the two hips project onto each other and the 2D decision is a coin
   toss, while the 3D hip line still tells left from right).
@@ -280,6 +284,8 @@ class FitOptions:
     # a single photo: the shoulder and hip lines turned at least as far as the detector's 3D ones, where
     # they clearly turn (_Problem.turn_term)
     turn_weight: float = TURN_WEIGHT
+    # a single photo: phase 1 runs again from the start when its 3D left/right decisions change (fit_body)
+    refit_turn: bool = True
 
     def check(self) -> None:
         if self.iterations < 1 or self.refine_iterations < 0:
@@ -574,16 +580,15 @@ class _Problem:
         seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
         self.torso_seen = torch.where(self.bone_conf[:, SPINE_BONE, None] > 0, trusted_lean(seen, up, self.front), up)
         # (F, 2) for turn_term: the detector's shoulder and hip lines' turn, and their weights where it reads a
-        # clear turn (both lines within the range, the same way, the way its own left and right say)
+        # clear turn (both lines within the range, the same way, the arms' and the legs' left/right decided alike)
         sel = list(TURN_BONES)
         lines = self.bone_dir[:, sel]
         self.turn_seen = torch.atan2(lines[..., 2], lines[..., 0].abs())
-        raw = torch.as_tensor(self.raw_world, dtype=dt)
-        raw = self.bone_end[sel] @ raw - self.bone_start[sel] @ raw
-        own = torch.sign(torch.atan2(raw[..., 2], raw[..., 0].abs()))
+        groups = list(SWAP_GROUPS)
+        agree = torch.as_tensor(self.swapped_3d[:, groups.index("arms")] == self.swapped_3d[:, groups.index("legs")])
         turn = self.turn_seen.abs()
         clear = ((turn >= np.radians(TURN_SEEN_DEG)).all(-1) & (turn <= np.radians(TURN_MAX_DEG)).all(-1)
-                 & (torch.sign(self.turn_seen) == own).all(-1)
+                 & agree
                  & (torch.sign(self.turn_seen[:, 0]) == torch.sign(self.turn_seen[:, 1])))
         self.turn_conf = self.bone_conf[:, sel] * clear[:, None]
 
@@ -671,9 +676,9 @@ class _Problem:
         Only where the model's line already turns the detector's way: it is never pulled through facing
         the camera (a turn's way is the 3D landmarks' least certain reading; the 2D keypoints and the
         face tell it). Only in frames where the detector turns both lines between :data:`TURN_SEEN_DEG`
-        and :data:`TURN_MAX_DEG`, the same way, and the way its own left and right say (the left/right
-        decisions, :meth:`decide_swaps`, may exchange them: after a fit that has turned its back on the
-        camera, the detector's turn reads mirrored). 0 without 3D landmarks."""
+        and :data:`TURN_MAX_DEG`, the same way, with the arms' and the legs' left/right decided alike
+        (:meth:`decide_swaps`: both as detected or both exchanged; one exchanged and not the other reads
+        a twist). 0 without 3D landmarks."""
         sel = list(TURN_BONES)
         if coco17.dim() == 2:
             coco17 = coco17[None].expand(self.w2c.shape[0], -1, -1)
@@ -846,25 +851,38 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
     def scale_prior() -> torch.Tensor:
         return options.scale_prior_weight * (log_scale - torch.log(scale0)).pow(2).sum() / len(observations)
 
-    # phase 1: global orientation, translation, scale on the torso (and silhouettes, lightly)
-    n1 = max(30, options.iterations // 3)
-    opt = torch.optim.Adam([orient, transl, log_scale], lr=0.02)
-    for step in range(n1):
-        _cosine_lr(opt, [0.02], step, n1)
-        opt.zero_grad()
-        out = model(make_params(joint_rot))
-        loss = options.keypoint_weight * problem.keypoint_term(out.coco17[0], TORSO) + scale_prior()
-        if options.bone_direction_weight > 0:
-            loss = loss + options.bone_direction_weight * problem.bone_direction_term(out.coco17[0], TORSO_BONES)
-        if problem.uses_silhouette:
-            loss = loss + problem.silhouette_loss(out.vertices[0], 0.3)
-        loss.backward()
-        opt.step()
-        history.append(float(loss.detach()))
-    changed = problem.decide_swaps(out.coco17[0].detach())
-    lg.debug("phase 1: loss %.4f, %d left/right decisions changed", history[-1], changed)
-
+    # phase 1: global orientation, translation, scale on the torso (and silhouettes, lightly). Fitting one
+    # photo, where the left/right decisions on the 3D landmarks it ends with change, it runs again from the
+    # start with them: fitted to the mirrored shoulder and hip lines, the body turned the wrong way, and
+    # phase 2 cannot turn it back through facing the camera (a turned torso's 2D width is the same either
+    # way), so the hips stayed turned against the shoulders. (The 2D decisions alone do not count: in a
+    # side view they are a coin toss. Many views outvote one view's mirrored labels.)
     n_views = sum(o.has_keypoints for o in observations)
+    n1 = max(30, options.iterations // 3)
+    for _ in range(2 if options.refit_turn and n_views == 1 else 1):
+        decided_3d = problem.swapped_3d.copy()
+        with torch.no_grad():
+            orient.copy_(init.global_orient)
+            transl.copy_(init.transl)
+            log_scale.copy_(torch.log(init.scale))
+        opt = torch.optim.Adam([orient, transl, log_scale], lr=0.02)
+        for step in range(n1):
+            _cosine_lr(opt, [0.02], step, n1)
+            opt.zero_grad()
+            out = model(make_params(joint_rot))
+            loss = options.keypoint_weight * problem.keypoint_term(out.coco17[0], TORSO) + scale_prior()
+            if options.bone_direction_weight > 0:
+                loss = loss + options.bone_direction_weight * problem.bone_direction_term(out.coco17[0], TORSO_BONES)
+            if problem.uses_silhouette:
+                loss = loss + problem.silhouette_loss(out.vertices[0], 0.3)
+            loss.backward()
+            opt.step()
+            history.append(float(loss.detach()))
+        changed = problem.decide_swaps(out.coco17[0].detach())
+        lg.debug("phase 1: loss %.4f, %d left/right decisions changed", history[-1], changed)
+        if (problem.swapped_3d == decided_3d).all():
+            break
+
     depth_seen = options.bone_direction_weight > 0 and all(o.has_world_keypoints for o in observations
                                                            if o.has_keypoints)
     few_views = options.single_view_pose_prior_weight_3d if depth_seen else options.single_view_pose_prior_weight
