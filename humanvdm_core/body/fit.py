@@ -112,8 +112,7 @@ Contract:
     stride), it keeps its own. Below :data:`TURN_SEEN_DEG` the detector's turn is noise as often as
     not (up to 10 deg on synthetic people facing the camera); beyond :data:`TURN_MAX_DEG` (near
     profile) the pull twisted the hips against the legs; a line is never pulled through facing the
-    camera, nor where the left/right decisions exchanged the arms' landmarks and not the legs' (or the
-    other way round: the two lines then read a twist).
+    camera.
 
 - The rules that read a single photo's landmarks before the fit (:func:`held_out_arms`,
   :func:`reach_directions`, :func:`frontal_arms`, :func:`facing_shoulders`, :func:`onto_the_head`,
@@ -580,15 +579,12 @@ class _Problem:
         seen = torch.einsum("fi,fij->fj", self.bone_dir[:, SPINE_BONE], self.w2c[:, :3, :3])
         self.torso_seen = torch.where(self.bone_conf[:, SPINE_BONE, None] > 0, trusted_lean(seen, up, self.front), up)
         # (F, 2) for turn_term: the detector's shoulder and hip lines' turn, and their weights where it reads a
-        # clear turn (both lines within the range, the same way, the arms' and the legs' left/right decided alike)
+        # clear turn (both lines within the range, the same way)
         sel = list(TURN_BONES)
         lines = self.bone_dir[:, sel]
         self.turn_seen = torch.atan2(lines[..., 2], lines[..., 0].abs())
-        groups = list(SWAP_GROUPS)
-        agree = torch.as_tensor(self.swapped_3d[:, groups.index("arms")] == self.swapped_3d[:, groups.index("legs")])
         turn = self.turn_seen.abs()
         clear = ((turn >= np.radians(TURN_SEEN_DEG)).all(-1) & (turn <= np.radians(TURN_MAX_DEG)).all(-1)
-                 & agree
                  & (torch.sign(self.turn_seen[:, 0]) == torch.sign(self.turn_seen[:, 1])))
         self.turn_conf = self.bone_conf[:, sel] * clear[:, None]
 
@@ -676,9 +672,8 @@ class _Problem:
         Only where the model's line already turns the detector's way: it is never pulled through facing
         the camera (a turn's way is the 3D landmarks' least certain reading; the 2D keypoints and the
         face tell it). Only in frames where the detector turns both lines between :data:`TURN_SEEN_DEG`
-        and :data:`TURN_MAX_DEG`, the same way, with the arms' and the legs' left/right decided alike
-        (:meth:`decide_swaps`: both as detected or both exchanged; one exchanged and not the other reads
-        a twist). 0 without 3D landmarks."""
+        and :data:`TURN_MAX_DEG`, the same way (after the left/right decisions, :meth:`decide_swaps`).
+        0 without 3D landmarks."""
         sel = list(TURN_BONES)
         if coco17.dim() == 2:
             coco17 = coco17[None].expand(self.w2c.shape[0], -1, -1)
