@@ -271,6 +271,51 @@ def test_two_people_warn_or_refuse(ryota, offline):
 
 
 @needs_mediapipe
+def test_people_touching_each_other_count_as_two(ryota, offline):
+    """Two people side by side whose silhouettes touch (one mask): the second is found with the first
+    hidden, upright as the first."""
+    mask = load_photo(PHOTOS / "pifu_ryota_mask.png").rgb[..., 0] > 0.5
+    h, w = mask.shape
+    off = int(0.32 * w)  # the mirrored copy's hand over the first one's
+    rgb = np.zeros((h, w + off, 3), np.float32)
+    rgb[:, :w][mask] = ryota.rgb[mask]
+    both = np.zeros((h, w + off), bool)
+    both[:, :w] = mask
+    second = mask[:, ::-1] & ~both[:, off:off + w]
+    rgb[:, off:off + w][second] = ryota.rgb[:, ::-1][second]
+    both[:, off:off + w] |= mask[:, ::-1]
+    assert cv2.connectedComponents(both.astype(np.uint8))[0] == 2  # one silhouette (and the background)
+    det = detect_person(_photo(rgb, "touching.png"))
+    assert det.num_people == 2
+    assert any("touching.png shows 2 people" in w for w in det.warnings)
+
+
+@needs_mediapipe
+def test_a_figure_the_segmentation_cuts_up_is_one_person(offline, monkeypatch):
+    """The three.js Soldier (armour, a hood, no face) turned 30 deg, as an RGBA cut-out: MediaPipe's mask of
+    it leaves out an arm and the legs, and with the figure hidden it put a second "person" on those
+    pieces, its torso lying across the arm (shoulders 9 px apart, hips 87 px to the side): the photo was
+    said to show 2 people. A second person's torso must point the way the first one's does."""
+    pytest.importorskip("moderngl", reason="moderngl is not installed")
+    scan = PHOTOS.parent / "scans" / "threejs_soldier"
+    if not scan.is_dir():
+        pytest.skip(f"fixture scan {scan} not present")
+    from humanvdm_core.cameras import orbit_cameras
+    from humanvdm_core.perception import detect as detect_module
+    from humanvdm_core.render import render_views
+    from humanvdm_core.scans import framing_radius, load_scan, normalize_scan
+
+    cam = orbit_cameras(1, 768, 33.8, 10.0, framing_radius(), azimuths_deg=np.array([0.0]))
+    rgba = render_views(normalize_scan(load_scan(scan), yaw_deg=210.0), cam, (1.0, 1.0, 1.0)).rgba[0]  # it faces -Z
+    photo = Photo(rgb=np.ascontiguousarray(rgba[..., :3]), alpha=np.ascontiguousarray(rgba[..., 3]),
+                  path=Path("soldier.png"), original_size=(768, 768))
+    det = detect_person(photo)
+    assert det.num_people == 1 and not any("people" in w for w in det.warnings), det.warnings
+    monkeypatch.setattr(detect_module, "OTHER_TORSO_DEG", 180.0)  # any torso counts: the old count
+    assert detect_person(photo).num_people == 2
+
+
+@needs_mediapipe
 def test_a_held_object_outside_the_outline_joins_the_mask_on_a_plain_background(ryota, offline):
     alone = detect_person(ryota)
     x, y = alone.keypoints[IDX["right_wrist"]]  # on the image's left

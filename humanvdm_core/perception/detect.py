@@ -43,7 +43,8 @@ Contract of :func:`detect_person`:
 - Bad inputs:
   * no person: :class:`InputError` "no person found in <file>";
   * more than one person (separate silhouettes each confirmed by a pose run on that silhouette
-    alone, or a second pose found once the chosen person is masked out): by default the person with
+    alone, or a second pose found once the chosen person is masked out, its torso upright as theirs,
+    :data:`OTHER_TORSO_DEG`): by default the person with
     the largest silhouette is kept (for people touching each other, whose silhouettes merge, the one
     MediaPipe's pose detector picked), the mask is restricted to them, and a warning says how many
     people were found; ``refuse_multiple=True`` raises :class:`InputError` instead. Known limit:
@@ -97,6 +98,11 @@ ALPHA_MIN_TRANSPARENT = 0.01  # alpha is "meaningful" when this ..
 ALPHA_MAX_TRANSPARENT = 0.99  # .. to this fraction of the pixels is transparent (alpha < 0.5)
 MIN_PERSON_AREA = 0.002  # a silhouette smaller than this fraction of the image is not a person
 OTHER_PERSON_AREA = 0.2  # another silhouette counts if at least this fraction of the largest one
+# a pose found beside the chosen person, in their shared silhouette, counts as another person only if its
+# torso (shoulders' centre -> hips' centre) points within this many degrees of the chosen one's: with the
+# chosen person hidden, MediaPipe can put a "torso" lying across what its mask of them left out (an
+# armoured figure's arm and legs)
+OTHER_TORSO_DEG = 45.0
 _TORSO = (11, 12, 23, 24)  # BlazePose shoulders and hips
 BORDER = 0.02  # the photo's border band (share of the short side) that shows the background
 BACKGROUND_DISTANCE = 0.12  # RGB distance within which a pixel has the background's colour
@@ -171,6 +177,12 @@ class _Pose:
 
     def torso_visible(self) -> bool:
         return bool(np.all(self.landmarks[list(_TORSO), 2] >= MIN_CONFIDENCE))
+
+    def torso_axis(self) -> np.ndarray:
+        """(2,) unit image direction from the shoulders' centre to the hips' centre."""
+        shoulders, hips = self.landmarks[list(_TORSO[:2]), :2].mean(0), self.landmarks[list(_TORSO[2:]), :2].mean(0)
+        d = (hips - shoulders).astype(np.float64)
+        return d / max(float(np.linalg.norm(d)), 1e-9)
 
     def visibility(self) -> float:
         """The mean visibility of the COCO-17 landmarks: how sure the pose is of the body as a whole."""
@@ -624,7 +636,8 @@ def _detect(photo: Photo, refuse_multiple: bool, trim: bool) -> Detection:
         hidden = _grey_out(work, ~(chosen_person | counted))
         extra = _run_pose(pose_model, hidden)
         if (extra is not None and extra.torso_visible() and _in_region(everyone, extra.torso_center())
-                and not _in_region(chosen_person, extra.torso_center())):
+                and not _in_region(chosen_person, extra.torso_center())
+                and float(extra.torso_axis() @ person.torso_axis()) >= np.cos(np.radians(OTHER_TORSO_DEG))):
             others += 1
 
     num_people = 1 + others
