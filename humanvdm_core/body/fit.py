@@ -121,13 +121,15 @@ Contract:
 - Left/right confusion: a keypoint detector often swaps the person's left and right on back and
   side views. Per frame and per group (face, arms, legs), the assignment (as detected or swapped)
   that better agrees with the current 3D estimate is used; it is decided after phase 1 and again
-  during phase 2 (:data:`SWAP_GROUPS`). Fitting a single photo, where the decisions on the 3D landmarks
-  after phase 1 differ from those it was fitted with, phase 1 runs once more from the start with them
-  (``FitOptions.refit_turn``): a body turned to mirrored shoulder and hip lines is turned the wrong
-  way, and phase 2 cannot turn it back through facing the camera. The 2D keypoints follow the assignment nearer the model's
+  during phase 2 (:data:`SWAP_GROUPS`). The 2D keypoints follow the assignment nearer the model's
   projection; the 3D keypoints are decided on their own, by which assignment's bones point more like
   the model's (in a side view the two hips project onto each other and the 2D decision is a coin
-  toss, while the 3D hip line still tells left from right).
+  toss, while the 3D hip line still tells left from right). Fitting a single photo, where the 3D
+  decisions after phase 1 differ from those it was fitted with, phase 1 runs once more from the start
+  with them (``FitOptions.refit_turn``): a body turned to mirrored shoulder and hip lines is turned the
+  wrong way, and phase 2 cannot turn it back through facing the camera (a turned torso's 2D width is
+  the same either way), so its hips stayed turned against its shoulders. The 2D decisions alone do not
+  count (a coin toss in a side view), nor do an orbit's (its many views outvote one frame's labels).
 - Initialisation: from the key frame (the one whose camera azimuth is nearest 0, the input view):
   the body faces that camera; its translation puts the torso centre on the ray through the detected
   torso centre at the camera's distance to the orbit centre; its scale matches the detected torso
@@ -846,12 +848,8 @@ def fit_body(model: BodyModel, cameras: Cameras, observations: list[FrameObserva
     def scale_prior() -> torch.Tensor:
         return options.scale_prior_weight * (log_scale - torch.log(scale0)).pow(2).sum() / len(observations)
 
-    # phase 1: global orientation, translation, scale on the torso (and silhouettes, lightly). Fitting one
-    # photo, where the left/right decisions on the 3D landmarks it ends with change, it runs again from the
-    # start with them: fitted to the mirrored shoulder and hip lines, the body turned the wrong way, and
-    # phase 2 cannot turn it back through facing the camera (a turned torso's 2D width is the same either
-    # way), so the hips stayed turned against the shoulders. (The 2D decisions alone do not count: in a
-    # side view they are a coin toss. Many views outvote one view's mirrored labels.)
+    # phase 1: global orientation, translation, scale on the torso (and silhouettes, lightly); for a single
+    # photo once more from the start where its 3D left/right decisions change (module docstring)
     n_views = sum(o.has_keypoints for o in observations)
     n1 = max(30, options.iterations // 3)
     for _ in range(2 if options.refit_turn and n_views == 1 else 1):
