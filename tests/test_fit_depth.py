@@ -667,6 +667,41 @@ def test_frontal_arms_moves_only_arms_held_out_to_the_side():
         np.testing.assert_allclose(frontal_arms(world.astype(np.float32), k, c, up), world, atol=1e-6)
 
 
+def test_an_arm_held_out_from_a_turned_body_is_read_in_its_plane():
+    """A body turned 45 deg from a level camera, its right arm held out 40 deg from hanging in the body's
+    own plane: the photo shows it 31 deg from hanging (its sideways extent narrowed by cos 45), under
+    held_out_arms' 35, so frontal_arms left its 3D forearm where MediaPipe tilted it. Read in the turned
+    plane it is held out, and frontal_arms puts it into that plane."""
+    from humanvdm_core.body.landmarks import ARM_OUT_DEG, frontal_arms, held_out_arms
+
+    up = np.array([0.0, -1.0, 0.0])
+    c = np.cos(np.radians(45.0))
+    world = np.zeros((17, 3))
+    world[[5, 6]] = [[0.2 * c, -0.5, -0.2 * c], [-0.2 * c, -0.5, 0.2 * c]]  # the left shoulder nearer
+    world[[11, 12]] = [[0.1 * c, 0.0, -0.1 * c], [-0.1 * c, 0.0, 0.1 * c]]
+    out_dir = np.array([-c, 0.0, c])  # the right arm's sideways direction in the body's plane
+    arm = np.sin(np.radians(40.0)) * out_dir + np.cos(np.radians(40.0)) * np.array([0.0, 1.0, 0.0])
+    world[8] = world[6] + 0.28 * arm
+    world[10] = world[8] + 0.25 * arm + [0.0, 0.0, -0.12]  # the forearm tilted towards the camera
+    kp = np.zeros((17, 2))
+    px = 400.0  # pixels per metre, orthographic
+    for j in (5, 6, 11, 12):
+        kp[j] = [200 + px * world[j, 0], 200 + px * world[j, 1]]
+    for j in (8, 10):  # the arm as the photo shows it, in the body's plane
+        kp[j] = [200 + px * (world[6, 0] + (world[j, 1] - world[6, 1]) * np.tan(np.radians(40.0)) * -c),
+                 200 + px * world[j, 1]]
+    kp[[7, 9]] = kp[5] + [0.0, 100.0], kp[5] + [0.0, 200.0]  # the left arm hangs
+    conf = np.ones(17)
+    seen = np.degrees(np.arctan2(abs(kp[8, 0] - kp[6, 0]), kp[8, 1] - kp[6, 1]))
+    assert seen < ARM_OUT_DEG < 40.0, seen
+    assert held_out_arms(kp, conf) == [] and held_out_arms(kp, conf, turn_cos=c) == [1]
+    out = frontal_arms(world.astype(np.float32), kp, conf, up)
+    normal = np.cross(world[5] - world[6], up)
+    normal /= np.linalg.norm(normal)
+    assert abs((out[10] - out[6]) @ normal) < 1e-5 < abs((world[10] - world[6]) @ normal)  # now in the plane
+    np.testing.assert_allclose(out[[7, 9]], world[[7, 9]], atol=1e-6)  # the hanging arm unchanged
+
+
 def test_arms_read_short_tells_a_detector_contradicting_itself_from_foreshortening():
     """arms_read_short / rebuild_arms on hand-made landmarks: a T-pose arm whose 2D wrist sits on the
     elbow while its 3D landmarks lie in the image plane is read short and redrawn along them; an arm

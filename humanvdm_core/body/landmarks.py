@@ -47,6 +47,8 @@ ARM_OUT_DEG = 35.0
 ARM_STRAIGHT_DEG = 35.0
 ARM_SEEN_LENGTH = 0.4
 ARM_CONFIDENCE = 0.5
+# frontal_arms reads a turned body's arms in its own plane (held_out_arms' turn_cos) up to this turn
+TURN_READ_MAX_DEG = 60.0
 # An arm the detector reads short (see arms_read_short): a bone whose 3D landmarks lie at least
 # ARM_IN_PLANE in the image plane (the in-plane share of its unit direction) while its 2D keypoints
 # show less than ARM_READ_SHORT of the length that direction implies, the bone's length taken as
@@ -132,17 +134,24 @@ def facing_shoulders(world: np.ndarray, keypoints: np.ndarray, confidences: np.n
     return out.astype(np.float32)
 
 
-def held_out_arms(keypoints: np.ndarray, confidences: np.ndarray) -> list[int]:
+def held_out_arms(keypoints: np.ndarray, confidences: np.ndarray, turn_cos: float = 1.0) -> list[int]:
     """The arms (indices into :data:`ARMS`: 0 left, 1 right) that the 2D ``keypoints`` (17, 2 pixels,
     ``confidences`` (17,)) show held out to the side: the upper arm at least :data:`ARM_OUT_DEG` from
     hanging straight down, the forearm within :data:`ARM_STRAIGHT_DEG` of the upper arm's line, the
     upper arm at least :data:`ARM_SEEN_LENGTH` of the torso's length (not pointing at the camera) and
-    its three joints at least :data:`ARM_CONFIDENCE` sure. A T-pose, an A-pose, raised arms, a wave."""
+    its three joints at least :data:`ARM_CONFIDENCE` sure. A T-pose, an A-pose, raised arms, a wave.
+
+    ``turn_cos``: the cosine of the body's turn from the camera about the vertical. A turned body's
+    frontal plane shows its sideways extents that much narrower, so the two angles are read with the
+    arm's horizontal image components divided by it (an A-pose's far arm, 39 deg from hanging in the
+    body's plane, shows 34 deg from 45 deg to the side); the length is read as the photo shows it."""
     torso = torso_length(keypoints)
+    widen = np.array([1.0 / max(turn_cos, 1e-6), 1.0])
     out = []
     for arm, (shoulder, elbow, wrist) in enumerate(ARMS):
         upper_2d, fore_2d = keypoints[elbow] - keypoints[shoulder], keypoints[wrist] - keypoints[elbow]
-        if (angle_deg(upper_2d, IMAGE_DOWN) >= ARM_OUT_DEG and angle_deg(upper_2d, fore_2d) <= ARM_STRAIGHT_DEG
+        if (angle_deg(upper_2d * widen, IMAGE_DOWN) >= ARM_OUT_DEG
+                and angle_deg(upper_2d * widen, fore_2d * widen) <= ARM_STRAIGHT_DEG
                 and np.linalg.norm(upper_2d) >= ARM_SEEN_LENGTH * torso
                 and min(confidences[[shoulder, elbow, wrist]]) >= ARM_CONFIDENCE):
             out.append(arm)
@@ -166,9 +175,10 @@ def reach_directions(keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarr
 def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
                  up: np.ndarray) -> np.ndarray:
     """The detector's 3D landmarks ``world`` (17, 3, camera axes) with every arm held out to the side
-    (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``) turned into the
-    body's frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the
-    camera's axes); bone lengths are kept and nothing else moves.
+    (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``, read in the plane of
+    a body turned as the 3D shoulder line is, up to :data:`TURN_READ_MAX_DEG`) turned into the body's
+    frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the camera's
+    axes); bone lengths are kept and nothing else moves.
 
     MediaPipe tilts such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg
     elevation: true -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a
@@ -179,7 +189,9 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     if np.linalg.norm(normal) < 1e-6:
         return out.astype(np.float32)
     normal /= np.linalg.norm(normal)
-    for arm in held_out_arms(keypoints, confidences):
+    line = out[5] - out[6]  # the shoulder line's turn about the vertical, at most TURN_READ_MAX_DEG
+    turn_cos = max(abs(line[0]) / max(float(np.hypot(line[0], line[2])), 1e-9), np.cos(np.radians(TURN_READ_MAX_DEG)))
+    for arm in held_out_arms(keypoints, confidences, turn_cos):
         shoulder, elbow, wrist = ARMS[arm]
         bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
         flat = [b - (b @ normal) * normal for b in bones]
