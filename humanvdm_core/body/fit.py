@@ -533,7 +533,9 @@ class _Problem:
         if options.frontal_arms:
             for f, o in enumerate(observations):
                 if o.world_keypoints is not None:
-                    self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f])
+                    # a single photo's arms are judged in the plane of its turned body (an orbit's: as seen)
+                    self.raw_world[f] = frontal_arms(self.raw_world[f], self.raw_kp[f], o.confidences, ups[f],
+                                                     turned=single)
         # a single photo of a seated person: its 2D knees raised, its spine held straight (fit_body)
         self.seated = single and any(
             o.has_keypoints and seated(o.confidences, o.world_keypoints, ups[f]) for f, o in enumerate(observations))

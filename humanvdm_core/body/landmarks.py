@@ -173,12 +173,12 @@ def reach_directions(keypoints: np.ndarray, confidences: np.ndarray) -> np.ndarr
 
 
 def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarray,
-                 up: np.ndarray) -> np.ndarray:
+                 up: np.ndarray, turned: bool = True) -> np.ndarray:
     """The detector's 3D landmarks ``world`` (17, 3, camera axes) with every arm held out to the side
-    (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``, read in the plane of
-    a body turned as the 3D shoulder line is, up to :data:`TURN_READ_MAX_DEG`) turned into the body's
-    frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the camera's
-    axes); bone lengths are kept and nothing else moves.
+    (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``; with ``turned``, read
+    in the plane of a body turned as the 3D shoulder line is, up to :data:`TURN_READ_MAX_DEG`) turned into
+    the body's frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the
+    camera's axes); bone lengths are kept and nothing else moves.
 
     MediaPipe tilts such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg
     elevation: true -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a
@@ -191,7 +191,7 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     normal /= np.linalg.norm(normal)
     line = out[5] - out[6]  # the shoulder line's turn about the vertical, at most TURN_READ_MAX_DEG
     turn_cos = max(abs(line[0]) / max(float(np.hypot(line[0], line[2])), 1e-9), np.cos(np.radians(TURN_READ_MAX_DEG)))
-    for arm in held_out_arms(keypoints, confidences, turn_cos):
+    for arm in held_out_arms(keypoints, confidences, turn_cos if turned else 1.0):
         shoulder, elbow, wrist = ARMS[arm]
         bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
         flat = [b - (b @ normal) * normal for b in bones]
