@@ -34,7 +34,7 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
    order of shoulders and hips, MediaPipe's 3D nose vs ears): a photo taken from behind is built
    facing away from the camera and says so in a warning; a doubtful case is assumed to face the
    camera, with a warning. A person the fit shows in profile (the shoulders' line turned at least
-   :data:`PROFILE_DEG` out of the image plane, :func:`shoulder_turn_deg`) gets a warning that says so
+   :data:`PROFILE_DEG` out of the image plane, :func:`~humanvdm_core.body.landmarks.shoulder_turn_deg`) gets a warning that says so
    instead: their front and back are seen edge-on and both are guessed.
 4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
    azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
@@ -85,6 +85,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from humanvdm_core.body.landmarks import shoulder_turn_deg
 from humanvdm_core.body.model import COCO17_NAMES
 from humanvdm_core.cameras import Cameras, orbit_cameras, project_points, sample_bilinear
 from humanvdm_core.clothed_proxy import ClothedProxy
@@ -442,14 +443,6 @@ def _without_told(warnings: list[str], name: str, told: set[str]) -> list[str]:
             w = prefix + ", ".join(rest)
         out.append(w)
     return out
-
-
-def shoulder_turn_deg(coco17: np.ndarray, w2c: np.ndarray) -> float:
-    """Degrees the shoulders' line (COCO joints 5 and 6 of ``coco17`` (17, 3), world) is turned out of
-    the image plane of the camera ``w2c`` (4, 4) about the vertical: 0 facing the camera or away from
-    it, 90 in profile."""
-    line = (coco17[5] - coco17[6]) @ np.asarray(w2c, np.float64)[:3, :3].T
-    return float(np.degrees(np.arctan2(abs(line[2]), abs(line[0]))))
 
 
 def lean_deg(world: np.ndarray | None, confidences: np.ndarray, lower: list[int], upper: list[int]) -> float | None:

@@ -134,6 +134,16 @@ def facing_shoulders(world: np.ndarray, keypoints: np.ndarray, confidences: np.n
     return out.astype(np.float32)
 
 
+def shoulder_turn_deg(joints: np.ndarray, w2c: np.ndarray | None = None) -> float:
+    """Degrees the shoulders' line (COCO-17 5 and 6 of ``joints`` (17, 3): in the world seen by the camera
+    ``w2c`` (4, 4), or in camera axes without it) is turned out of the image plane about the vertical: 0
+    facing the camera or away from it, 90 in profile."""
+    line = np.asarray(joints[5], np.float64) - np.asarray(joints[6], np.float64)
+    if w2c is not None:
+        line = line @ np.asarray(w2c, np.float64)[:3, :3].T
+    return float(np.degrees(np.arctan2(abs(line[2]), abs(line[0]))))
+
+
 def held_out_arms(keypoints: np.ndarray, confidences: np.ndarray, turn_cos: float = 1.0) -> list[int]:
     """The arms (indices into :data:`ARMS`: 0 left, 1 right) that the 2D ``keypoints`` (17, 2 pixels,
     ``confidences`` (17,)) show held out to the side: the upper arm at least :data:`ARM_OUT_DEG` from
@@ -189,9 +199,8 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     if np.linalg.norm(normal) < 1e-6:
         return out.astype(np.float32)
     normal /= np.linalg.norm(normal)
-    line = out[5] - out[6]  # the shoulder line's turn about the vertical, at most TURN_READ_MAX_DEG
-    turn_cos = max(abs(line[0]) / max(float(np.hypot(line[0], line[2])), 1e-9), np.cos(np.radians(TURN_READ_MAX_DEG)))
-    for arm in held_out_arms(keypoints, confidences, turn_cos if turned else 1.0):
+    turn_cos = np.cos(np.radians(min(shoulder_turn_deg(out), TURN_READ_MAX_DEG))) if turned else 1.0
+    for arm in held_out_arms(keypoints, confidences, turn_cos):
         shoulder, elbow, wrist = ARMS[arm]
         bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
         flat = [b - (b @ normal) * normal for b in bones]
