@@ -314,6 +314,27 @@ def test_smooth_hands_flattens_the_fingers_relief_and_leaves_the_rest():
     assert np.all(maps["back"] >= maps["front"])
 
 
+def test_smooth_hands_leaves_no_blade_between_the_fingers():
+    """A hand on the hip (rows 40-60) whose fitted fingers (two pixels wide) leave one-pixel gaps where
+    the thigh shows through 4 cm before the hand (as the fitted thigh bulges past a hand resting on it):
+    after smoothing, no pixel of the hand's outline stands more than 1.5 cm off the hand's depth (each
+    gap row, seen from the side, was a 4 cm blade), and the torso beyond the hand is untouched."""
+    size = 100
+    front = np.full((size, size), 3.0)
+    part = np.full((size, size), PARTS.index("torso"))
+    front[40:60, 40:60] = 2.95
+    part[40:60, 40:60] = PARTS.index("hands")
+    gaps = (slice(42, 58), slice(41, 59, 3))
+    front[gaps] = 2.91
+    part[gaps] = PARTS.index("legs")
+    body = np.ones((size, size), bool)
+    maps = {"front": front.copy(), "back": front + 0.05, "front_part": part, "back_part": part}
+    smooth_hands(maps, body, 288)
+    assert np.abs(maps["front"][40:60, 40:60] - 2.95).max() < 0.015
+    assert np.array_equal(maps["front"][:36], front[:36]) and np.array_equal(maps["front"][64:], front[64:])
+    assert np.all(maps["back"] >= maps["front"])
+
+
 def test_harmonic_extension_and_nearest_fill():
     values = np.zeros((40, 40))
     known = np.zeros((40, 40), bool)
