@@ -32,7 +32,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`HAND_SMOOTH` of the grid, and within the hand's outline (the gaps between its fitted fingers
    included) no pixel stands more than :data:`HAND_STEP` off its neighbours' median (:func:`smooth_hands`):
    the photo does not show the fingers' depth, and the fitted fingers' relief, or a thigh showing between
-   the fingers of a hand on the hip, would stand out from the side as shards.
+   the fingers of a hand on the hip, would stand out from the side as shards. The feet's outline likewise
+   (:func:`flatten_shards`): the fitted toes' tips stood out as spikes.
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
    feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
    (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of
@@ -168,8 +169,8 @@ SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourh
 EDGE_SMOOTH = 2.0  # grid pixels (Gaussian sigma) over which the sheets' depths are averaged near the border ...
 EDGE_BAND = 4.0  # ... fading out over this many grid pixels inside it
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged ...
-HAND_CLOSE = 0.017  # ... gaps narrower than this fraction of the grid (between fingers) are the hand's ...
-HAND_STEP = 0.01  # ... and a pixel of it this far (metres) off its 5x5 median takes the median
+HAND_CLOSE = 0.017  # gaps narrower than this fraction of the grid (between fingers, toes) are a hand's (foot's) ...
+HAND_STEP = 0.01  # ... and a pixel of it this far (metres) off its 5x5 median takes the median (flatten_shards)
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
@@ -542,14 +543,11 @@ def arm_reach_limit(trunk_depth: np.ndarray, fx: float) -> tuple[np.ndarray, np.
 def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
     """Replace the depth of the hands' nearest (farthest) surface by its mean over the hand's pixels
     within :data:`HAND_SMOOTH` of the ``grid``: a photo does not show its fingers' depth, and the fitted
-    fingers' own relief, a few centimetres from pixel to pixel, stands out from the side as shards. Then,
-    over the hand's region (its pixels closed by :data:`HAND_CLOSE` of the ``grid``: the gaps between the
-    fitted fingers, where the body behind them or a thigh bulging past a hand on the hip shows through),
-    every pixel more than :data:`HAND_STEP` off the region's 5x5 median takes the median: from the side,
-    such a pixel row is a blade. In place on ``maps["front"]`` / ``maps["back"]``."""
+    fingers' own relief, a few centimetres from pixel to pixel, stands out from the side as shards. Then
+    :func:`flatten_shards` over the hands: the gaps between the fitted fingers, where the body behind
+    them or a thigh bulging past a hand on the hip shows through. In place on ``maps["front"]`` /
+    ``maps["back"]``."""
     k = max(3, int(HAND_SMOOTH * grid) | 1)
-    close = max(3, int(HAND_CLOSE * grid) | 1)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close, close))
     for key in ("front", "back"):
         hand = ((maps[key + "_part"] == PARTS.index("hands")) & body).astype(np.float32)
         if not hand.any():
@@ -557,7 +555,23 @@ def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
         total = cv2.boxFilter(np.where(hand > 0, maps[key], 0.0).astype(np.float32), -1, (k, k), normalize=False)
         count = cv2.boxFilter(hand, -1, (k, k), normalize=False)
         maps[key] = np.where(hand > 0, total / np.maximum(count, 1.0), maps[key])
-        region = cv2.morphologyEx(hand.astype(np.uint8), cv2.MORPH_CLOSE, kernel).astype(bool) & body
+    flatten_shards(maps, body, PARTS.index("hands"), grid)
+
+
+def flatten_shards(maps: dict, body: np.ndarray, part: int, grid: int) -> None:
+    """Over the outline of the body ``part`` (its pixels of the nearest, or farthest, surface closed over
+    :data:`HAND_CLOSE` of the ``grid``, so the gaps between fitted fingers or toes count), every pixel more
+    than :data:`HAND_STEP` off the region's 5x5 median depth takes the median: from the side, a row of
+    such pixels is a blade (a thigh showing between the fingers of a hand on the hip, a toe's tip). A
+    slope (a foot pointing at the camera) keeps its depths. In place on ``maps["front"]`` /
+    ``maps["back"]``, the back kept behind the front."""
+    close = max(3, int(HAND_CLOSE * grid) | 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close, close))
+    for key in ("front", "back"):
+        own = ((maps[key + "_part"] == part) & body).astype(np.uint8)
+        if not own.any():
+            continue
+        region = cv2.morphologyEx(own, cv2.MORPH_CLOSE, kernel).astype(bool) & body
         median = cv2.medianBlur(nearest_fill(maps[key], region).astype(np.float32), 5)
         maps[key] = np.where(region & (np.abs(maps[key] - median) > HAND_STEP), median, maps[key])
     maps["back"] = np.where(body, np.maximum(maps["back"], maps["front"]), maps["back"])
@@ -830,6 +844,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
             clothing[part] = min(max(clothing.get(part, 0.0), metres), GARMENT_MAX)
     add_clothing(maps, body, g, clothing)
     smooth_hands(maps, body, g)
+    flatten_shards(maps, body, PARTS.index("feet"), g)
     mid_body = 0.5 * (maps["front"] + maps["back"])
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
     t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from humanvdm_core.body.parts import PARTS
-from humanvdm_core.clothed_proxy import remove_spikes, run_halfdepth, smooth_hands
+from humanvdm_core.clothed_proxy import flatten_shards, remove_spikes, run_halfdepth, smooth_hands
 from humanvdm_core.image_fill import harmonic_extension, nearest_fill
 from humanvdm_core.proxy_colours import face_colour, median_colour, row_medians, unseen_side_colours
 
@@ -332,6 +332,30 @@ def test_smooth_hands_leaves_no_blade_between_the_fingers():
     smooth_hands(maps, body, 288)
     assert np.abs(maps["front"][40:60, 40:60] - 2.95).max() < 0.015
     assert np.array_equal(maps["front"][:36], front[:36]) and np.array_equal(maps["front"][64:], front[64:])
+    assert np.all(maps["back"] >= maps["front"])
+
+
+def test_flatten_shards_takes_the_toes_spikes_and_keeps_the_feet_slope():
+    """A foot pointing at the camera (rows 70-90: its nearest surface 5 mm nearer each row down, the toe
+    at the bottom) with two toe tips standing 3 cm out of it (a one-pixel row each, from the side a
+    spike): after flatten_shards the spikes stand at most 1 cm out, the slope is the same everywhere else and
+    the leg above is untouched."""
+    size = 100
+    rows = np.arange(size, dtype=np.float64)[:, None] * np.ones((1, size))
+    front = np.where(rows >= 70, 3.3 - 0.005 * (rows - 70), 3.3)
+    part = np.full((size, size), PARTS.index("legs"))
+    part[70:90, 40:60] = PARTS.index("feet")
+    front[70:90, :40] = front[70:90, 60:] = 3.3
+    spikes = front.copy()
+    spikes[84, 44:48] -= 0.03
+    spikes[87, 52:55] -= 0.03
+    body = np.ones((size, size), bool)
+    maps = {"front": spikes.copy(), "back": spikes + 0.1, "front_part": part, "back_part": part}
+    flatten_shards(maps, body, PARTS.index("feet"), 288)
+    spiked = spikes != front
+    assert np.abs(maps["front"] - front)[spiked].max() <= 0.0101  # 3 cm out -> within the 1 cm step
+    assert np.abs(maps["front"] - front)[~spiked].max() < 1e-6  # the slope and the rest as they were
+    assert np.array_equal(maps["front"][:66], spikes[:66])
     assert np.all(maps["back"] >= maps["front"])
 
 
