@@ -30,10 +30,9 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    is: the contact fixes the hand's depth, and a forearm rising to it from the chest then stands as far
    before the chest and the face as its length demands. A hand's depth is its mean over
    :data:`HAND_SMOOTH` of the grid, and within the hand's outline (the gaps between its fitted fingers
-   included) no pixel stands more than :data:`HAND_STEP` off its neighbours' median (:func:`smooth_hands`):
+   included) no pixel stands more than :data:`SHARD_STEP` off its neighbours' median (:func:`smooth_hands`):
    the photo does not show the fingers' depth, and the fitted fingers' relief, or a thigh showing between
-   the fingers of a hand on the hip, would stand out from the side as shards. The feet's outline likewise
-   (:func:`flatten_shards`): the fitted toes' tips stood out as spikes.
+   the fingers of a hand on the hip, would stand out from the side as shards (:func:`flatten_shards`).
 4. **Clothes and shoes.** The body is fitted inside the silhouette, so it is naked: where the torso (the
    feet) is the nearest (farthest) surface, that surface moves ``CLOTHING["torso"]``
    (``CLOTHING["feet"]``) towards (away from) the camera, faded out over :data:`CLOTHING_FEATHER` of
@@ -42,7 +41,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    stands out beyond the body at both sides in the torso's (the legs') rows (:func:`garment_margins`: a
    puffy jacket, a coat, armour, wide trousers), the torso (the legs) moves that far instead, between
    :data:`GARMENT_NOISE` and :data:`GARMENT_MAX`: a garment is about as thick in front and behind as it
-   is wide beyond the body.
+   is wide beyond the body. The feet's outline is cleaned as the hands' is (:func:`flatten_shards`):
+   the fitted toes' tips stood out as spikes.
 5. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
    equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
@@ -169,8 +169,8 @@ SPIKE_DEPTH = 0.04  # metres a sheet's pixel may stand out of its 5x5 neighbourh
 EDGE_SMOOTH = 2.0  # grid pixels (Gaussian sigma) over which the sheets' depths are averaged near the border ...
 EDGE_BAND = 4.0  # ... fading out over this many grid pixels inside it
 HAND_SMOOTH = 0.025  # fraction of the grid over which a hand's depth is averaged ...
-HAND_CLOSE = 0.017  # gaps narrower than this fraction of the grid (between fingers, toes) are a hand's (foot's) ...
-HAND_STEP = 0.01  # ... and a pixel of it this far (metres) off its 5x5 median takes the median (flatten_shards)
+SHARD_CLOSE = 0.017  # flatten_shards: gaps narrower than this fraction of the grid (between fingers, toes) are the part's ...
+SHARD_STEP = 0.01  # ... and a pixel of it this far (metres) off its 5x5 median takes the median
 SKIRT_MARGIN = 0.03  # metres a garment reaches beyond the legs on both sides for its rows to hang like a skirt
 SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this fraction of the person's height
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
@@ -560,12 +560,12 @@ def smooth_hands(maps: dict, body: np.ndarray, grid: int) -> None:
 
 def flatten_shards(maps: dict, body: np.ndarray, part: int, grid: int) -> None:
     """Over the outline of the body ``part`` (its pixels of the nearest, or farthest, surface closed over
-    :data:`HAND_CLOSE` of the ``grid``, so the gaps between fitted fingers or toes count), every pixel more
-    than :data:`HAND_STEP` off the region's 5x5 median depth takes the median: from the side, a row of
+    :data:`SHARD_CLOSE` of the ``grid``, so the gaps between fitted fingers or toes count), every pixel more
+    than :data:`SHARD_STEP` off the region's 5x5 median depth takes the median: from the side, a row of
     such pixels is a blade (a thigh showing between the fingers of a hand on the hip, a toe's tip). A
     slope (a foot pointing at the camera) keeps its depths. In place on ``maps["front"]`` /
     ``maps["back"]``, the back kept behind the front."""
-    close = max(3, int(HAND_CLOSE * grid) | 1)
+    close = max(3, int(SHARD_CLOSE * grid) | 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close, close))
     for key in ("front", "back"):
         own = ((maps[key + "_part"] == part) & body).astype(np.uint8)
@@ -573,7 +573,7 @@ def flatten_shards(maps: dict, body: np.ndarray, part: int, grid: int) -> None:
             continue
         region = cv2.morphologyEx(own, cv2.MORPH_CLOSE, kernel).astype(bool) & body
         median = cv2.medianBlur(nearest_fill(maps[key], region).astype(np.float32), 5)
-        maps[key] = np.where(region & (np.abs(maps[key] - median) > HAND_STEP), median, maps[key])
+        maps[key] = np.where(region & (np.abs(maps[key] - median) > SHARD_STEP), median, maps[key])
     maps["back"] = np.where(body, np.maximum(maps["back"], maps["front"]), maps["back"])
 
 
