@@ -41,8 +41,8 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    stands out beyond the body at both sides in the torso's (the legs') rows (:func:`garment_margins`: a
    puffy jacket, a coat, armour, wide trousers), the torso (the legs) moves that far instead, between
    :data:`GARMENT_NOISE` and :data:`GARMENT_MAX`: a garment is about as thick in front and behind as it
-   is wide beyond the body. The arms' and the feet's outlines are cleaned as the hands' is
-   (:func:`flatten_shards`): a forearm's edge or the fitted toes' tips stood out as spikes.
+   is wide beyond the body. The feet's outline is cleaned as the hands' is (:func:`flatten_shards`):
+   the fitted toes' tips stood out as spikes.
 5. **Mid-depth.** Where the body covers the mask, the mid-depth is the body's ``(front + back) / 2``;
    elsewhere (loose clothing, hair, held objects) it is the harmonic extension of it (Laplace
    equation, body pixels fixed, free at the silhouette). With ``legs_hidden`` (the photo shows no
@@ -562,9 +562,9 @@ def flatten_shards(maps: dict, body: np.ndarray, part: int, grid: int) -> None:
     """Over the outline of the body ``part`` (its pixels of the nearest, or farthest, surface closed over
     :data:`SHARD_CLOSE` of the ``grid``, so the gaps between fitted fingers or toes count), every pixel more
     than :data:`SHARD_STEP` off the region's 5x5 median depth takes the median: from the side, a row of
-    such pixels is a blade (a thigh showing between the fingers of a hand on the hip, a toe's tip, the
-    edge of a forearm raised before the body). A slope (a foot or a forearm pointing at the camera)
-    keeps its depths. In place on ``maps["front"]`` / ``maps["back"]``, the back kept behind the front."""
+    such pixels is a blade (a thigh showing between the fingers of a hand on the hip, a toe's tip). A
+    slope (a foot pointing at the camera) keeps its depths. In place on ``maps["front"]`` /
+    ``maps["back"]``, the back kept behind the front."""
     close = max(3, int(SHARD_CLOSE * grid) | 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close, close))
     for key in ("front", "back"):
@@ -844,8 +844,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
             clothing[part] = min(max(clothing.get(part, 0.0), metres), GARMENT_MAX)
     add_clothing(maps, body, g, clothing)
     smooth_hands(maps, body, g)
-    for limb in ("arms", "feet"):
-        flatten_shards(maps, body, PARTS.index(limb), g)
+    flatten_shards(maps, body, PARTS.index("feet"), g)
     mid_body = 0.5 * (maps["front"] + maps["back"])
     mid = harmonic_extension(np.where(body, mid_body, 0.0), body, domain)
     t_body = np.where(body, 0.5 * (maps["back"] - maps["front"]), 0.0)

@@ -1115,19 +1115,6 @@ def test_an_arm_whose_hand_a_contact_places_keeps_its_fitted_depth():
             assert float(np.abs(z).max()) <= 0.15 + ARM_REACH + 0.02, (neck, z.min(), z.max())
 
 
-def test_a_ridge_along_a_forearm_before_the_body_is_no_blade():
-    """A "forearm" lying across the cylinder "torso", 3 cm before it, with a ridge one grid row tall standing
-    3 cm out of it (as a fitted forearm's edge or a fold of it does): from the side such a row is a blade.
-    The arms' outline is cleaned as the hands' is: the proxy's front stands no more than 1.5 cm before the
-    forearm's, where the ridge reached 3 cm."""
-    proxy = _proxy_of_torso_with_boxes([((0.4, 0.09, 0.03), (0.0, 0.1, 0.165), "lowerarm01.L"),
-                                        ((0.2, 0.012, 0.03), (0.0, 0.1, 0.195), "lowerarm01.L")])
-    v = proxy.mesh.vertices
-    arm = proxy.front & (np.abs(v[:, 0]) < 0.15) & (np.abs(v[:, 1] - 0.1) < 0.04)
-    assert arm.any()
-    assert float(v[arm, 2].max()) <= 0.18 + 0.015, float(v[arm, 2].max())
-
-
 def _proxy_of_folded_arm():
     """The cylinder "torso" of :func:`_proxy_of_torso_with_boxes` with its right "upper arm" hanging beside
     it (a 0.08 m box along y at x = -0.22, z = 0) and the left "forearm" folded across it far in front (a
