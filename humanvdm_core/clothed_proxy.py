@@ -399,16 +399,21 @@ def run_halfdepth(domain: np.ndarray, labels: np.ndarray | None = None,
     return both if round_about_vertical is None else np.where(round_about_vertical, rows, both)
 
 
+def despiked(depth: np.ndarray, region: np.ndarray, limit: float) -> np.ndarray:
+    """``depth`` (H, W) with every pixel of ``region`` (H, W bool) that stands more than ``limit`` off the
+    5x5 median of the region's depths (those beyond it filled from the nearest region pixel) replaced by
+    that median."""
+    median = cv2.medianBlur(nearest_fill(depth, region).astype(np.float32), 5)
+    return np.where(region & (np.abs(depth - median) > limit), median, depth)
+
+
 def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: np.ndarray,
                   limit: float = SPIKE_DEPTH) -> tuple[np.ndarray, np.ndarray]:
     """The sheets ``mid -/+ half`` with every pixel of the footprint ``domain`` that stands more than
     ``limit`` out of its sheet's 5x5 median replaced by that median (a stray rasterised depth on the
     body's edge, a one-pixel gap between a hand and the body: from the side, a spike), returned as
     ``(mid, half)`` again, ``half`` 0 on ``border`` and never negative."""
-    sheets = []
-    for depth in (mid - half, mid + half):
-        smooth = cv2.medianBlur(nearest_fill(depth, domain).astype(np.float32), 5)
-        sheets.append(np.where(domain & (np.abs(depth - smooth) > limit), smooth, depth))
+    sheets = [despiked(depth, domain, limit) for depth in (mid - half, mid + half)]
     half = np.where(border, 0.0, np.maximum(0.5 * (sheets[1] - sheets[0]), 0.0))
     return 0.5 * (sheets[0] + sheets[1]), half
 
@@ -572,8 +577,7 @@ def flatten_shards(maps: dict, body: np.ndarray, part: int, grid: int) -> None:
         if not own.any():
             continue
         region = cv2.morphologyEx(own, cv2.MORPH_CLOSE, kernel).astype(bool) & body
-        median = cv2.medianBlur(nearest_fill(maps[key], region).astype(np.float32), 5)
-        maps[key] = np.where(region & (np.abs(maps[key] - median) > SHARD_STEP), median, maps[key])
+        maps[key] = despiked(maps[key], region, SHARD_STEP)
     maps["back"] = np.where(body, np.maximum(maps["back"], maps["front"]), maps["back"])
 
 
