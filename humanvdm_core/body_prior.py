@@ -33,7 +33,10 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 3. Facing (:func:`humanvdm_core.perception.facing.estimate_facing`: a face found, the left/right
    order of shoulders and hips, MediaPipe's 3D nose vs ears): a photo taken from behind is built
    facing away from the camera and says so in a warning; a doubtful case is assumed to face the
-   camera, with a warning. A person the fit shows in profile (the shoulders' line turned at least
+   camera, with a warning. A face found while the pose model's left/right order and its 3D depth both read
+   a back (:attr:`~humanvdm_core.perception.facing.Facing.mirrored`: it mirrored the whole skeleton, as it
+   can for a person turned with raised arms) has its keypoints set right before the fit
+   (:func:`~humanvdm_core.perception.facing.unmirrored`), else the body turns the wrong way. A person the fit shows in profile (the shoulders' line turned at least
    :data:`PROFILE_DEG` out of the image plane, :func:`~humanvdm_core.body.landmarks.shoulder_turn_deg`) gets a warning that says so
    instead: their front and back are seen edge-on and both are guessed.
 4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
@@ -556,7 +559,7 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     from humanvdm_core.body import load_body_model
     from humanvdm_core.body.fit import FitOptions, FrameObservation, fit_body
     from humanvdm_core.body.landmarks import arms_read_short, hands_on_head, rebuild_arms
-    from humanvdm_core.perception.facing import estimate_facing
+    from humanvdm_core.perception.facing import estimate_facing, unmirrored
     from humanvdm_core.workflow.errors import ConfigError
 
     if geometry not in GEOMETRIES:
@@ -577,6 +580,10 @@ def build_body_proxy(photo_path: str | Path, num_frames: int = 21, size: int = 5
     front_cam = cameras.subset([front])
 
     facing = estimate_facing(view.rgba[..., :3], view.keypoints, view.confidences, view.world_keypoints)
+    if facing.mirrored:
+        keypoints, confidences, world = unmirrored(view.keypoints, view.confidences, view.world_keypoints)
+        view = replace(view, keypoints=keypoints, confidences=confidences, world_keypoints=world)
+        lg.info("body prior: the pose model mirrored the skeleton of a person facing the camera; set right")
     facing_warning = None
     if facing.away:
         facing_warning = (f"{name} shows the person from behind: built facing away from the camera; their front "

@@ -14,6 +14,10 @@ its pixels, and optionally MediaPipe's 3D world keypoints in the camera's axes):
   * ``depth``: in the 3D world keypoints, the nose in front of the ears (smaller z) faces the
     camera: ``(ears z - nose z) / 0.05 m`` clipped to [-1, 1].
 
+- The pose model can mirror a whole skeleton (seen on a person turned 45-60 deg with raised arms): its left
+  and right swapped and its 3D depth turned inside out, as for a person seen from behind, while the face
+  faces the camera. :attr:`Facing.mirrored` says so (a face found, ``order`` and ``depth`` both at most
+  ``-MIRROR_VOTE``); :func:`unmirrored` sets the keypoints right.
 - The person faces away when ``face`` found nothing and the sum of the votes is below
   :data:`AWAY_THRESHOLD`; a detected face always means facing the camera.
 - :class:`Facing` reports the decision, the votes, and ``ambiguous`` (no face found but the other
@@ -35,6 +39,7 @@ import numpy as np
 FACE_SCORE = 0.5
 AWAY_THRESHOLD = -0.5
 BOWED_DEG = 15.0  # a face pitched this far towards the camera (forehead nearer than the chin) is bowed
+MIRROR_VOTE = 0.5  # a face found, and the pose's order and depth votes both at or below minus this: mirrored
 _HEAD = (0, 1, 2, 3, 4)  # COCO nose, eyes, ears
 
 
@@ -44,6 +49,14 @@ class Facing:
     ambiguous: bool  # no face found and the pose evidence is weak or contradictory
     votes: dict[str, float] = field(default_factory=dict)
     pitch_deg: float | None = None  # the face's tilt towards the camera (forehead nearer), from the face mesh
+
+    @property
+    def mirrored(self) -> bool:
+        """A face is found, yet the pose model's 2D left/right order and its own 3D depth (the nose behind the
+        ears) both read a person seen from behind (each vote at most ``-MIRROR_VOTE``): the model mirrored
+        the whole skeleton, its left and right swapped and its depth turned inside out."""
+        return (self.votes.get("face", 0.0) > 0 and self.votes.get("order", 0.0) <= -MIRROR_VOTE
+                and self.votes.get("depth", 0.0) <= -MIRROR_VOTE)
 
     @property
     def bowed(self) -> bool:
@@ -118,3 +131,17 @@ def estimate_facing(rgb: np.ndarray, keypoints: np.ndarray, confidences: np.ndar
     pose_votes = [v for k, v in votes.items() if k != "face"]
     ambiguous = (not face) and (not away or any(v > 0.2 for v in pose_votes) or not pose_votes)
     return Facing(away=away, ambiguous=ambiguous, votes=votes, pitch_deg=face_pitch_deg(head) if face else None)
+
+
+def unmirrored(keypoints: np.ndarray, confidences: np.ndarray,
+               world_keypoints: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The COCO-17 ``keypoints`` (17, 2), ``confidences`` (17,) and 3D ``world_keypoints`` (17, 3, camera axes)
+    of a skeleton the pose model mirrored (:attr:`Facing.mirrored`) set right: left and right swapped, and the
+    3D landmarks' depth reflected about that of their hips' centre (a reflection in depth keeps the 2D
+    projection and turns a person seen from behind into one facing the camera)."""
+    order = np.array([0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15])
+    world = None
+    if world_keypoints is not None:
+        world = np.asarray(world_keypoints, np.float32)[order].copy()
+        world[:, 2] = 2.0 * world[[11, 12], 2].mean() - world[:, 2]
+    return np.asarray(keypoints)[order].copy(), np.asarray(confidences)[order].copy(), world
