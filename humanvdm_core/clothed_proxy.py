@@ -76,12 +76,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`; near the
    border both sheets' depths are averaged over :data:`EDGE_SMOOTH` grid px, fading out
    :data:`EDGE_BAND` px inside, so that an outline seen from an angle is not toothed by the grid's rows,
-   :func:`smooth_edge`; within :data:`RIM_BAND` px of the border the half-thickness grows with the distance
-   from the mask's outline, not from the grid's staircase, :func:`rim_profile`; both sheets' depths are
-   averaged down each column over :data:`ROW_SMOOTH` px, :func:`smooth_rows`: each row's depths come from
-   its own runs, and rows that disagree are ridges and streaks seen from the side; where the photo shows
-   long hair, the back sheet behind the head and the neck moves back so the hair hangs plumb from the back
-   of the head, :func:`hang_hair`), one
+   :func:`smooth_edge`; both sheets' depths are averaged down each column over :data:`ROW_SMOOTH` px,
+   :func:`smooth_rows`: each row's depths come from its own runs, and rows that disagree are ridges and
+   streaks seen from the side; where the photo shows long hair, the back sheet behind the head and the
+   neck moves back so the hair hangs plumb from the back of the head, :func:`hang_hair`), one
    vertex per grid pixel of the footprint back-projected along its ray (the border's through its point on
    the mask's outline, step 2), two triangles per 2x2 block
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
@@ -180,8 +178,7 @@ SKIRT_MIN_ROWS = 0.05  # rows of a garment wrapping both legs span at least this
 GRID = 288  # proxy grid resolution (vertices per side of the input view at most)
 RIM_SMOOTH = 0.75  # grid pixels (Gaussian sigma) over which the mask's outline is smoothed for the rim ...
 RIM_MAX_SHIFT = 1.0  # ... and the farthest (grid pixels) a rim vertex moves onto it
-RIM_BAND = 3.0  # grid pixels inside the border over which the half-thickness follows the outline (rim_profile)
-ROW_SMOOTH = 1.5  # grid pixels (Gaussian sigma) over which the sheets' depths are averaged down each column
+ROW_SMOOTH = 2.0  # grid pixels (Gaussian sigma) over which the sheets' depths are averaged down each column
 LEGS = (1, -1)  # the legs' sides (+1 left, -1 right), in the order of body_maps' leg maps
 LAYER_GAP = 0.03  # metres of empty ray between a leg and the other one before it for it to be a layer ...
 LAYER_MIN = 0.02  # ... over at least this share of the body's pixels
@@ -732,26 +729,22 @@ def unseen_rows(front: np.ndarray, back: np.ndarray, camera: Cameras, domain: np
     return np.clip(out, first, last)
 
 
-def outline_distance(mask: np.ndarray, g: int) -> np.ndarray:
-    """(g, g) float32: the signed distance, in pixels of a ``g`` grid, from each grid pixel's centre to the
-    outline of ``mask`` (size x size, person > 0.5), positive inside: measured at full size, brought to the
-    grid and smoothed over :data:`RIM_SMOOTH` grid pixels."""
+def rim_shift(mask: np.ndarray, g: int, rim: np.ndarray) -> np.ndarray:
+    """(g, g, 2) the image-plane shift (x, y, in pixels of a ``g`` grid) that takes each ``rim`` pixel's
+    centre onto the outline of ``mask`` (size x size, person > 0.5): the zero of its signed distance
+    (positive inside), measured at full size, brought to the grid and smoothed over
+    :data:`RIM_SMOOTH` grid pixels, reached by one Newton step along its gradient and at most
+    :data:`RIM_MAX_SHIFT` long. Zero off ``rim`` and where a rim pixel lies farther than
+    ``RIM_MAX_SHIFT + 0.5`` grid pixels from the outline (the frame's edge across a cropped person). The
+    proxy's outline then follows the mask's, not the grid's staircase (which a nearly vertical edge shows
+    as a notch every few rows)."""
     person = (mask > 0.5).astype(np.uint8)
     size = mask.shape[0]
     inside = cv2.distanceTransform(person, cv2.DIST_L2, 5)
     outside = cv2.distanceTransform(1 - person, cv2.DIST_L2, 5)
     signed = np.where(person > 0, inside - 0.5, 0.5 - outside).astype(np.float32) * (g / size)
     signed = cv2.resize(signed, (g, g), interpolation=cv2.INTER_AREA) if g != size else signed
-    return cv2.GaussianBlur(signed, (0, 0), RIM_SMOOTH)
-
-
-def rim_shift(signed: np.ndarray, rim: np.ndarray) -> np.ndarray:
-    """(g, g, 2) the image-plane shift (x, y, in grid pixels) that takes each ``rim`` pixel's centre onto
-    the outline whose signed distance is ``signed`` (:func:`outline_distance`): reached by one Newton step
-    along its gradient and at most :data:`RIM_MAX_SHIFT` long. Zero off ``rim`` and where a rim pixel lies
-    farther than ``RIM_MAX_SHIFT + 0.5`` grid pixels from the outline (the frame's edge across a cropped
-    person). The proxy's outline then follows the mask's, not the grid's staircase (which a nearly vertical
-    edge shows as a notch every few rows)."""
+    signed = cv2.GaussianBlur(signed, (0, 0), RIM_SMOOTH)
     gy, gx = np.gradient(signed)
     norm2 = np.maximum(gx * gx + gy * gy, 0.25)
     step = -signed[..., None] * np.stack([gx, gy], axis=-1) / norm2[..., None]
@@ -759,24 +752,6 @@ def rim_shift(signed: np.ndarray, rim: np.ndarray) -> np.ndarray:
     step = step * np.minimum(1.0, RIM_MAX_SHIFT / np.maximum(length, 1e-9))
     keep = rim & (np.abs(signed) <= RIM_MAX_SHIFT + 0.5)
     return np.where(keep[..., None], step, 0.0)
-
-
-def rim_profile(half: np.ndarray, signed: np.ndarray, domain: np.ndarray, border: np.ndarray,
-                band: float = RIM_BAND) -> np.ndarray:
-    """``half`` within ``band`` grid pixels of the ``border`` scaled by ``sqrt(s / d)``: ``s`` the pixel's
-    distance to the mask's outline (``signed``, :func:`outline_distance`), ``d`` its distance to the nearest
-    border pixel, faded out at ``band``; 0 stays 0 on the border. Each row's run of the grid ends on a pixel
-    of its own, so the first pixels inside stand 0.5 to 1.5 grid pixels from the outline on which the rim's
-    vertices sit (:func:`rim_shift`), while the half-thickness the runs give them is the same: seen from the
-    side, the rim's slope changes with the grid's staircase, a ridge every few rows. A round section's
-    half-thickness grows as the square root of the distance from its end, so it now follows the outline.
-    Not where the border lies off the outline (a layer's edge, the frame's edge): there ``s`` exceeds ``d``
-    by more than ``RIM_MAX_SHIFT + 0.5`` and nothing changes."""
-    d = cv2.distanceTransform((~border).astype(np.uint8), cv2.DIST_L2, 5)
-    on_outline = signed <= d + RIM_MAX_SHIFT + 0.5
-    scale = np.clip(np.sqrt(np.clip(signed, 0.05, None) / np.maximum(d, 1e-3)), 0.3, 1.5)
-    w = np.clip(1.0 - (d - 1.0) / max(band - 1.0, 1e-3), 0.0, 1.0) * on_outline * (d > 0)
-    return np.where(domain & ~border, half * (w * scale + 1.0 - w), half)
 
 
 def smooth_rows(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: np.ndarray,
@@ -946,8 +921,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
     mid, half = remove_spikes(mid, half, domain, border)
     mid, half = smooth_edge(mid, half, domain, border)
-    signed = outline_distance(mask, g)
-    mid, half = smooth_rows(mid, rim_profile(half, signed, domain, border), domain, border)
+    mid, half = smooth_rows(mid, half, domain, border)
     if head_colour is not None:
         mid, half = hang_hair(mid, half, domain & ~border, maps, rgb, mask, cam_g, np.asarray(head_colour, np.float32))
 
@@ -960,7 +934,7 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
 
     K_inv = np.linalg.inv(cam_g.K[0])
     c2w = cam_g.c2w[0]
-    shift = rim_shift(signed, border)[rows, cols]  # the rim onto the mask's outline, not the grid's staircase
+    shift = rim_shift(mask, g, border)[rows, cols]  # the rim onto the mask's outline, not the grid's staircase
     px, py = cols + 0.5 + shift[:, 0], rows + 0.5 + shift[:, 1]
     pix = np.stack([px, py, np.ones(n)], axis=1)
     rays = pix @ K_inv.T  # camera-space points at z = 1
@@ -1000,12 +974,12 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
         l_mid, l_half = layer_surface(l_near, np.maximum(l_far, l_near), zone, l_border, extra)
         l_mid, l_half = remove_spikes(l_mid, l_half, zone, l_border)
         l_mid, l_half = smooth_edge(l_mid, l_half, zone, l_border)
-        l_mid, l_half = smooth_rows(l_mid, rim_profile(l_half, signed, zone, l_border), zone, l_border)
+        l_mid, l_half = smooth_rows(l_mid, l_half, zone, l_border)
         lr, lc = np.nonzero(zone)
         m = len(lr)
         index = np.full((g, g), -1, np.int64)
         index[lr, lc] = len(verts) + np.arange(m)
-        l_shift = rim_shift(signed, l_border & border_all)[lr, lc]  # on the mask's outline, as the sheets' rim
+        l_shift = rim_shift(mask, g, l_border & border_all)[lr, lc]  # on the mask's outline, as the sheets' rim
         lx, ly = lc + 0.5 + l_shift[:, 0], lr + 0.5 + l_shift[:, 1]
         l_rays = np.stack([lx, ly, np.ones(m)], axis=1) @ K_inv.T
         for depth in (l_mid - l_half, l_mid + l_half):
