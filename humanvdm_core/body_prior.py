@@ -33,12 +33,13 @@ Contract of :func:`synthesize_orbit` (``photo_path`` -> ``(frames, cameras)``):
 3. Facing (:func:`humanvdm_core.perception.facing.estimate_facing`: a face found, the left/right
    order of shoulders and hips, MediaPipe's 3D nose vs ears): a photo taken from behind is built
    facing away from the camera and says so in a warning; a doubtful case is assumed to face the
-   camera, with a warning. A face found while the pose model's left/right order and its 3D depth both read
-   a back (:attr:`~humanvdm_core.perception.facing.Facing.mirrored`: it mirrored the whole skeleton, as it
-   can for a person turned with raised arms) has its keypoints set right before the fit
-   (:func:`~humanvdm_core.perception.facing.unmirrored`), else the body turns the wrong way. A person the fit shows in profile (the shoulders' line turned at least
-   :data:`PROFILE_DEG` out of the image plane, :func:`~humanvdm_core.body.landmarks.shoulder_turn_deg`) gets a warning that says so
-   instead: their front and back are seen edge-on and both are guessed.
+   camera, with a warning. A face found while the pose model's left/right order and its 3D depth both
+   read a back (:attr:`~humanvdm_core.perception.facing.Facing.mirrored`: it mirrored the whole skeleton,
+   as it can for a person turned with raised arms) has its keypoints set right before the fit
+   (:func:`~humanvdm_core.perception.facing.unmirrored`), else the body turns the wrong way. A person the
+   fit shows in profile (the shoulders' line turned at least :data:`PROFILE_DEG` out of the image plane,
+   :func:`~humanvdm_core.body.landmarks.shoulder_turn_deg`) gets a warning that says so instead: their
+   front and back are seen edge-on and both are guessed.
 4. Body: Anny is fitted to the input view alone (:func:`humanvdm_core.body.fit.fit_body` with the
    azimuth-0 camera and one observation: 2D keypoints, MediaPipe's 3D world landmarks as bone
    directions, the mask one-sided so clothing never stretches the body, the torso leaning no further

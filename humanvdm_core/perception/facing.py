@@ -41,6 +41,8 @@ AWAY_THRESHOLD = -0.5
 BOWED_DEG = 15.0  # a face pitched this far towards the camera (forehead nearer than the chin) is bowed
 MIRROR_VOTE = 0.5  # a face found, and the pose's order and depth votes both at or below minus this: mirrored
 _HEAD = (0, 1, 2, 3, 4)  # COCO nose, eyes, ears
+# COCO-17 with each left joint and its right one swapped (eyes, ears, shoulders, elbows, wrists, hips, knees, ankles)
+SWAPPED_SIDES = (0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15)
 
 
 @dataclass
@@ -139,7 +141,7 @@ def unmirrored(keypoints: np.ndarray, confidences: np.ndarray,
     of a skeleton the pose model mirrored (:attr:`Facing.mirrored`) set right: left and right swapped, and the
     3D landmarks' depth reflected about that of their hips' centre (a reflection in depth keeps the 2D
     projection and turns a person seen from behind into one facing the camera)."""
-    order = np.array([0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15])
+    order = list(SWAPPED_SIDES)
     world = None
     if world_keypoints is not None:
         world = np.asarray(world_keypoints, np.float32)[order].copy()
