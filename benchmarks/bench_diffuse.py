@@ -16,7 +16,7 @@ synthetic subjects with a skirt and long hair, a gown, a seated pose and hands o
   the person covers; ``warnings``: what the run says it guessed; ``side_roughness``: the mean change of the
   proxy's rendered normal between neighbouring image rows, over its silhouette (eroded 2 px) seen from
   azimuth 60, 90, 120, 240, 270 and 300 at 768² (:func:`side_roughness`): ridges along the proxy grid's
-  rows raise it (the fitted naked body alone reads about 0.039);
+  rows raise it (the fitted naked body alone reads 0.033-0.036);
 - a contact sheet row (input | orbit at azimuth ~0, ~86, ~171, ~274) in
   ``benchmarks/results/diffuse_<label>.png`` and one image per input ``diffuse_<name>[_<label>].png``.
 
