@@ -179,13 +179,13 @@ def main() -> None:
               f"{len(proxy.warnings)} warning(s)")
     write_png(RESULTS / f"diffuse_contact{suffix or '_after'}.png", np.concatenate(rows, axis=0))
     timed = [v["seconds"] for v in per_photo.values() if v["ok"]]
+    rough = [v["side_roughness"] for v in per_photo.values() if v["ok"]]
     result = {
         "size": args.size, "iterations": args.iterations, "num_frames": 21, "threads": 1,
         "photos": per_photo,
         "first_photo_s": timed[0] if timed else None,
         "median_s_after_first": float(np.median(timed[1:])) if len(timed) > 1 else None,
-        "median_side_roughness": float(np.median([v["side_roughness"] for v in per_photo.values() if v["ok"]]))
-        if timed else None,
+        "median_side_roughness": float(np.median(rough)) if rough else None,
     }
     cmd = f".venv/bin/python -m benchmarks.bench_diffuse --size {args.size} --iterations {args.iterations} --label {args.label}"
     print(save_result("diffuse" + suffix, result, cmd))

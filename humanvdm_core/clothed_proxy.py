@@ -762,6 +762,7 @@ def smooth_rows(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: n
     rasteriser hit it, so neighbouring rows disagree by millimetres, at the rim by centimetres; seen from
     the side, each disagreement is a ridge along the row (and the photo's colours there a streak)."""
     inner = (domain & ~border).astype(np.float32)
+    # a kernel one column wide (ksize (1, 0): its height from sigmaY)
     norm = np.maximum(cv2.GaussianBlur(inner, (1, 0), sigmaX=0.1, sigmaY=sigma), 1e-6)
 
     def down(values: np.ndarray) -> np.ndarray:
