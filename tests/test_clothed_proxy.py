@@ -488,24 +488,13 @@ def test_the_proxys_outline_follows_the_masks_not_the_grids_staircase():
     """A coat whose sides lean 5 deg, photographed at twice the proxy's grid (as a 768 px photo on the
     288 grid): in the input view, rendered at the photo's size, the proxy's outline lies on the mask's
     in every row (no step of a grid pixel every few rows, no grid pixel added around it)."""
-    import cv2
 
-    from humanvdm_core.cameras import orbit_cameras
     from humanvdm_core.clothed_proxy import build_clothed_proxy
 
     torch.set_num_threads(1)
     v, f, w, names = _cylinder_body()
     size, grid = 256, 128
-    front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
-    body = _silhouette(v, f, front)
-    rows = np.nonzero(body.any(axis=1))[0]
-    top, bottom = rows.min(), rows.max()
-    cx = np.nonzero(body[(top + bottom) // 2])[0].mean()
-    lean = np.tan(np.radians(5.0)) * (bottom - top)
-    coat = np.array([[cx - 45, top], [cx + 45, top], [cx + 45 + lean, bottom], [cx - 45 - lean, bottom]])
-    mask = np.zeros((size, size), np.uint8)
-    cv2.fillPoly(mask, [np.round(coat * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
-    mask |= body.astype(np.uint8)
+    front, mask, top, bottom = _leaning_coat(v, f, size)
     rgb = np.full((size, size, 3), 0.3, np.float32)
     proxy = build_clothed_proxy(v, f, w, names, front, rgb, mask.astype(np.float32), grid=grid)
 
@@ -618,6 +607,27 @@ def _tube(radius: float, length: float, top: tuple, tilt_deg: float = 0.0):
     m.apply_transform(trimesh.transformations.rotation_matrix(np.radians(tilt_deg), [1, 0, 0]))
     m.apply_translation(top)
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+
+
+def _leaning_coat(v: np.ndarray, f: np.ndarray, size: int):
+    """The cylinder body (``v``, ``f``) photographed from the front at ``size``² and a coat around it whose
+    sides lean 5 deg out, 45 / 256 of the photo wide each side of the body's axis at the top: (the camera,
+    the mask (size, size) uint8 of the coat and the body, the body's top and bottom rows)."""
+    import cv2
+
+    from humanvdm_core.cameras import orbit_cameras
+
+    front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
+    body = _silhouette(v, f, front)
+    rows = np.nonzero(body.any(axis=1))[0]
+    top, bottom = rows.min(), rows.max()
+    cx = np.nonzero(body[(top + bottom) // 2])[0].mean()
+    lean = np.tan(np.radians(5.0)) * (bottom - top)
+    half = 45 * size / 256
+    coat = np.array([[cx - half, top], [cx + half, top], [cx + half + lean, bottom], [cx - half - lean, bottom]])
+    mask = np.zeros((size, size), np.uint8)
+    cv2.fillPoly(mask, [np.round(coat * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
+    return front, mask | body.astype(np.uint8), top, bottom
 
 
 def _silhouette(vertices: np.ndarray, faces: np.ndarray, camera) -> np.ndarray:
@@ -1713,16 +1723,7 @@ def test_a_coat_seen_from_the_side_shows_no_ridge_along_the_grids_rows():
     torch.set_num_threads(1)
     v, f, w, names = _cylinder_body()
     size, grid = 512, 256
-    front = orbit_cameras(1, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([0.0]))
-    body = _silhouette(v, f, front)
-    rows = np.nonzero(body.any(axis=1))[0]
-    top, bottom = rows.min(), rows.max()
-    cx = np.nonzero(body[(top + bottom) // 2])[0].mean()
-    lean = np.tan(np.radians(5.0)) * (bottom - top)
-    coat = np.array([[cx - 90, top], [cx + 90, top], [cx + 90 + lean, bottom], [cx - 90 - lean, bottom]])
-    mask = np.zeros((size, size), np.uint8)
-    cv2.fillPoly(mask, [np.round(coat * 16).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
-    mask |= body.astype(np.uint8)
+    front, mask, top, bottom = _leaning_coat(v, f, size)
     proxy = build_clothed_proxy(v, f, w, names, front, np.full((size, size, 3), 0.3, np.float32),
                                 mask.astype(np.float32), grid=grid)
     sides = orbit_cameras(2, size, 33.8, 0.0, 3.2, azimuths_deg=np.array([90.0, 270.0]))
