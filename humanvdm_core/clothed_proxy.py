@@ -76,10 +76,10 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
    :data:`SPIKE_DEPTH` out of its sheet's 5x5 median takes the median, :func:`remove_spikes`; near the
    border both sheets' depths are averaged over :data:`EDGE_SMOOTH` grid px, fading out
    :data:`EDGE_BAND` px inside, so that an outline seen from an angle is not toothed by the grid's rows,
-   :func:`smooth_edge`; both sheets' depths are averaged down each column over :data:`ROW_SMOOTH` px,
-   :func:`smooth_rows`: each row's depths come from its own runs, and rows that disagree are ridges and
-   streaks seen from the side; where the photo shows long hair, the back sheet behind the head and the
-   neck moves back so the hair hangs plumb from the back of the head, :func:`hang_hair`), one
+   :func:`smooth_edge`; where the photo shows long hair, the back sheet behind the head and the neck
+   moves back so the hair hangs plumb from the back of the head, :func:`hang_hair`; last, both sheets'
+   depths are averaged down each column over :data:`ROW_SMOOTH` px, :func:`smooth_rows`: each row's
+   depths come from its own runs, and rows that disagree are ridges and streaks seen from the side), one
    vertex per grid pixel of the footprint back-projected along its ray (the border's through its point on
    the mask's outline, step 2), two triangles per 2x2 block
    (one for a 3-pixel corner); both sheets share positions along the border (border vertices are duplicated, so each sheet has
@@ -922,9 +922,9 @@ def build_clothed_proxy(vertices: np.ndarray, faces: np.ndarray, skinning_weight
     half = np.where(border, 0.0, np.where(holes, t_holes, np.maximum(t_body, t_inflate)))
     mid, half = remove_spikes(mid, half, domain, border)
     mid, half = smooth_edge(mid, half, domain, border)
-    mid, half = smooth_rows(mid, half, domain, border)
     if head_colour is not None:
         mid, half = hang_hair(mid, half, domain & ~border, maps, rgb, mask, cam_g, np.asarray(head_colour, np.float32))
+    mid, half = smooth_rows(mid, half, domain, border)
 
     # vertices: a front and a back sheet on every domain pixel, the back's in the same order after the front's
     # (the border's meet in position, each with its own texture coordinates)
