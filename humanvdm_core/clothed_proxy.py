@@ -126,6 +126,7 @@ Contract of :func:`build_clothed_proxy` (all in the input view's camera, OpenCV 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -421,6 +422,19 @@ def remove_spikes(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border:
     return 0.5 * (sheets[0] + sheets[1]), half
 
 
+def weighted_blur(weight: np.ndarray, sigma: float, columns: bool = False) -> Callable[[np.ndarray], np.ndarray]:
+    """A function taking ``values`` (H, W) to their Gaussian average (``sigma`` pixels) over ``weight``
+    (H, W float: 1 where a value counts, 0 where it does not), normalised by the weight's own average;
+    ``columns``: down each column only (a kernel one column wide). The weight's average is computed once."""
+    ksize, sigma_x = ((1, 0), 0.1) if columns else ((0, 0), sigma)
+    norm = np.maximum(cv2.GaussianBlur(weight, ksize, sigmaX=sigma_x, sigmaY=sigma), 1e-6)
+
+    def blur(values: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur((values * weight).astype(np.float32), ksize, sigmaX=sigma_x, sigmaY=sigma) / norm
+
+    return blur
+
+
 def smooth_edge(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: np.ndarray,
                 sigma: float = EDGE_SMOOTH, band: float = EDGE_BAND) -> tuple[np.ndarray, np.ndarray]:
     """``mid`` and ``half`` near the ``border`` of the footprint ``domain``: averaged over the domain with
@@ -428,12 +442,7 @@ def smooth_edge(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: n
     grid pixels inside it; ``half`` stays 0 on the border. Each row's run of the grid ends on a pixel
     boundary of its own, so the sheets' depths near the outline jump from row to row; seen from an
     angle, the outline then shows a tooth every row or two."""
-    weight = domain.astype(np.float32)
-    norm = np.maximum(cv2.GaussianBlur(weight, (0, 0), sigma), 1e-6)
-
-    def blurred(values: np.ndarray) -> np.ndarray:
-        return cv2.GaussianBlur((values * weight).astype(np.float32), (0, 0), sigma) / norm
-
+    blurred = weighted_blur(domain.astype(np.float32), sigma)
     distance = cv2.distanceTransform((~border).astype(np.uint8), cv2.DIST_L2, 5)
     w = np.clip(1.0 - distance / band, 0.0, 1.0) * domain
     mid = w * blurred(mid) + (1.0 - w) * mid
@@ -762,12 +771,7 @@ def smooth_rows(mid: np.ndarray, half: np.ndarray, domain: np.ndarray, border: n
     rasteriser hit it, so neighbouring rows disagree by millimetres, at the rim by centimetres; seen from
     the side, each disagreement is a ridge along the row (and the photo's colours there a streak)."""
     inner = (domain & ~border).astype(np.float32)
-    # a kernel one column wide (ksize (1, 0): its height from sigmaY)
-    norm = np.maximum(cv2.GaussianBlur(inner, (1, 0), sigmaX=0.1, sigmaY=sigma), 1e-6)
-
-    def down(values: np.ndarray) -> np.ndarray:
-        return cv2.GaussianBlur((values * inner).astype(np.float32), (1, 0), sigmaX=0.1, sigmaY=sigma) / norm
-
+    down = weighted_blur(inner, sigma, columns=True)
     keep = inner > 0
     return np.where(keep, down(mid), mid), np.where(keep, down(half), half)
 
