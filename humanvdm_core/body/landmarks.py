@@ -82,10 +82,16 @@ LEGS = ((11, 13, 15), (12, 14, 16))  # COCO-17 hip, knee, ankle: left, right
 # length (raise_seated_knees). Measured (benchmarks/bench_landmarks.py: seven seated synthetic subjects,
 # 576²), the detector's 2D knees lie, against its hips and shoulders (which stand within 0.04 of the
 # true joints, as on standing subjects, whose knees do too), 0.138 of the torso too low (mean) from 10
-# deg above, 0.111 from 20 and 0.063 from 30, so the thighs came out sloping 15-20 deg down.
+# deg above, 0.111 from 20 and 0.063 from 30, so the thighs came out sloping 15-20 deg down. That error is
+# a thigh's that points at the camera; seen at a slant its knee is read where it is or higher (the same
+# subjects photographed from 45 deg to their side: 0.01-0.07 of the torso above the joint), so each knee
+# gets the whole raise while its 2D thigh is at most KNEE_RAISE_FULL of the 2D torso (seated people
+# facing the camera: 0.31-0.47), none from KNEE_RAISE_NONE on (from 45 deg: 0.52-0.76), linearly between.
 SEATED_TOWARDS = 0.6
 KNEE_RAISE_LEVEL = 0.175
 KNEE_RAISE_PER_DEG = 0.0035
+KNEE_RAISE_FULL = 0.48
+KNEE_RAISE_NONE = 0.62
 IMAGE_DOWN = np.array([0.0, 1.0])  # straight down in the image (pixel y grows downwards)
 
 
@@ -310,11 +316,18 @@ def raise_seated_knees(keypoints: np.ndarray, confidences: np.ndarray, world: np
                        up: np.ndarray) -> np.ndarray:
     """2D ``keypoints`` (17, 2 pixels) with a :func:`seated` person's knees raised by ``KNEE_RAISE_LEVEL -
     KNEE_RAISE_PER_DEG`` x the camera's elevation (read off ``up``, the world's up in the camera's axes) of
-    the 2D torso's length; a copy, unchanged for anyone else."""
+    the 2D torso's length, each knee by all of it while its 2D thigh is at most :data:`KNEE_RAISE_FULL` of
+    the 2D torso (the thigh points at the camera) and by none from :data:`KNEE_RAISE_NONE` on (seen at a
+    slant); a copy, unchanged for anyone else."""
     out = keypoints.copy()
     if seated(confidences, world, up):
         elevation = float(np.degrees(np.arcsin(np.clip(-up[2] / np.linalg.norm(up), -1.0, 1.0))))
-        out[[13, 14], 1] -= max(KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG * elevation, 0.0) * torso_length(keypoints)
+        torso = torso_length(keypoints)
+        share = max(KNEE_RAISE_LEVEL - KNEE_RAISE_PER_DEG * elevation, 0.0)
+        for hip, knee, _ in LEGS:
+            thigh = float(np.linalg.norm(keypoints[knee] - keypoints[hip])) / max(torso, 1e-9)
+            pointing = float(np.clip((KNEE_RAISE_NONE - thigh) / (KNEE_RAISE_NONE - KNEE_RAISE_FULL), 0.0, 1.0))
+            out[knee, 1] -= share * pointing * torso
     return out
 
 
