@@ -865,7 +865,9 @@ def test_onto_the_head_moves_only_wrists_on_the_head():
     """onto_the_head on hand-made landmarks (camera axes: x right, y down, z away from the camera): a
     wrist beside the face but 0.25 m before the nose moves back to the head's middle, as does one on
     the crown taken level with the ears; a wrist at the hip, an unsure one, or any wrist when the head
-    is unsure, keeps its depth; nothing else moves."""
+    is unsure, keeps its depth; nothing else moves. Under an elbow raised above the shoulder, a wrist
+    further out and unsure (the far hand behind the head) is on it too; not with the elbow at the
+    shoulder's height, nor further out (a wave)."""
     from humanvdm_core.body.landmarks import hands_on_head, onto_the_head
 
     world = np.zeros((17, 3))
@@ -888,6 +890,17 @@ def test_onto_the_head_moves_only_wrists_on_the_head():
               np.where(np.isin(np.arange(17), [3, 4]), 0.3, 1.0)):
         assert hands_on_head(world, c) == []
         np.testing.assert_allclose(onto_the_head(world.astype(np.float32), c), world, atol=1e-6)
+    # seen at a slant: the far hand behind the head, unsure and 0.25 m from its centre, under a raised elbow
+    behind = world.copy()
+    behind[10] = [-0.22, -0.78, 0.05]
+    behind[8] = [-0.3, -0.62, 0.0]  # the elbow 0.12 m above the shoulder
+    unsure = np.where(np.arange(17) == 10, 0.2, 1.0)
+    assert hands_on_head(behind, unsure) == [10]
+    for wrist, elbow in (([-0.22, -0.78, 0.05], [-0.3, -0.5, 0.0]),  # the elbow at the shoulder's height
+                         ([-0.3, -0.88, 0.05], [-0.3, -0.62, 0.0])):  # the hand 0.37 m out: waving
+        away = world.copy()
+        away[10], away[8] = wrist, elbow
+        assert hands_on_head(away, unsure) == []
 
 
 @pytest.mark.slow
@@ -1104,3 +1117,4 @@ def test_a_seated_person_photographed_from_the_side_keeps_level_thighs(photo, mo
     assert np.max(whole) > 90.0, whole  # what the whole raise did: a knee above its hip
     off, off_whole = np.linalg.norm(fitted_at - true_at, axis=1).mean(), np.linalg.norm(whole_at - true_at, axis=1).mean()
     assert off < 0.09 and off_whole > off + 0.03, (off, off_whole)
+

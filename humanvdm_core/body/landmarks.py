@@ -62,6 +62,11 @@ ARMS = ((5, 7, 9), (6, 8, 10))  # COCO-17 shoulder, elbow, wrist: left, right
 # image plane) of the centre of the nose and the ears, all of them at least HEAD_CONFIDENCE sure.
 HEAD_TOUCH = 0.2
 HEAD_CONFIDENCE = 0.5
+# ... or, its elbow raised at least ELBOW_RAISED (metres) above its shoulder and at least HEAD_CONFIDENCE
+# sure, the wrist within HEAD_REACH of that centre, however sure: a hand on the head seen at a slant, the
+# far one hidden behind the head (MediaPipe's 3D wrists there lie 0.22-0.27 m from the head's centre).
+ELBOW_RAISED = 0.05
+HEAD_REACH = 0.3
 WRISTS = (9, 10)  # COCO-17 left, right wrist
 # A person standing still (see standing_still): in the photo both legs' hips, knees and ankles at least
 # STANCE_CONFIDENCE sure, each thigh within STANCE_THIGH_DEG and shin within STANCE_SHIN_DEG of straight
@@ -264,15 +269,24 @@ def _sure_ears(confidences: np.ndarray) -> list[int]:
 
 def hands_on_head(world: np.ndarray, confidences: np.ndarray) -> list[int]:
     """The COCO-17 wrists (:data:`WRISTS`) that the detector's 3D landmarks ``world`` (17, 3, camera
-    axes, metres) place on the head: within :data:`HEAD_TOUCH` of the centre of the nose and the ears
-    across the image plane (x, y), the wrist, the nose and an ear at least :data:`HEAD_CONFIDENCE` sure
-    (``confidences`` (17,)). A palm on the cheek, a hand on the chin, at the ear or on top of the head."""
+    axes, metres, y down) place on the head: within :data:`HEAD_TOUCH` of the centre of the nose and the
+    ears across the image plane (x, y), the wrist, the nose and an ear at least :data:`HEAD_CONFIDENCE`
+    sure (``confidences`` (17,)) -- a palm on the cheek, a hand on the chin, at the ear or on top of the
+    head -- or, under an elbow raised :data:`ELBOW_RAISED` above its shoulder and sure, within
+    :data:`HEAD_REACH` of it, the wrist however sure: hands on the head seen at a slant, the far one
+    behind the head."""
     ears = _sure_ears(confidences)
     if confidences[0] < HEAD_CONFIDENCE or not ears:
         return []
-    centre = np.asarray(world, np.float64)[[0] + ears, :2].mean(axis=0)
-    return [w for w in WRISTS if confidences[w] >= HEAD_CONFIDENCE
-            and np.linalg.norm(np.asarray(world[w][:2], np.float64) - centre) <= HEAD_TOUCH]
+    world = np.asarray(world, np.float64)
+    centre = world[[0] + ears, :2].mean(axis=0)
+    on_head = []
+    for shoulder, elbow, wrist in ARMS:
+        near = float(np.linalg.norm(world[wrist, :2] - centre))
+        raised = confidences[elbow] >= HEAD_CONFIDENCE and world[elbow, 1] <= world[shoulder, 1] - ELBOW_RAISED
+        if (confidences[wrist] >= HEAD_CONFIDENCE and near <= HEAD_TOUCH) or (raised and near <= HEAD_REACH):
+            on_head.append(wrist)
+    return on_head
 
 
 def onto_the_head(world: np.ndarray, confidences: np.ndarray) -> np.ndarray:
