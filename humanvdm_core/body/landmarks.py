@@ -43,12 +43,17 @@ TURN_TRUSTED_DEG = 12.0
 # hanging straight down, the forearm within ARM_STRAIGHT_DEG of the upper arm's line, the upper arm at
 # least ARM_SEEN_LENGTH of the torso's length (not pointing at the camera), its three joints at least
 # ARM_CONFIDENCE sure.
-ARM_OUT_DEG = 35.0
+ARM_OUT_DEG = 30.0
 ARM_STRAIGHT_DEG = 35.0
 ARM_SEEN_LENGTH = 0.4
 ARM_CONFIDENCE = 0.5
-# frontal_arms reads a turned body's arms in its own plane (held_out_arms' turn_cos) up to this turn
+# frontal_arms reads a turned body's arms in its own plane (held_out_arms' turn_cos) up to this turn ...
 TURN_READ_MAX_DEG = 60.0
+# ... and where a bone of the detector's, laid into that plane, points more than ARM_LIFT_DEG from where the
+# photo shows it, takes the photo's direction lifted into the plane (a plane seen at least ARM_LIFT_FACING
+# face on: the determinant of its horizontal and vertical directions' image components)
+ARM_LIFT_DEG = 10.0
+ARM_LIFT_FACING = 0.3
 # An arm the detector reads short (see arms_read_short): a bone whose 3D landmarks lie at least
 # ARM_IN_PLANE in the image plane (the in-plane share of its unit direction) while its 2D keypoints
 # show less than ARM_READ_SHORT of the length that direction implies, the bone's length taken as
@@ -199,27 +204,41 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``; with ``turned``, read
     in the plane of a body turned as the 3D shoulder line is, up to :data:`TURN_READ_MAX_DEG`) turned into
     the body's frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the
-    camera's axes); bone lengths are kept and nothing else moves.
+    camera's axes): each bone laid into the plane, or, where laid so it points more than
+    :data:`ARM_LIFT_DEG` from the photo's bone, the photo's bone lifted into the plane (the direction in
+    the plane that the camera sees along it); bone lengths are kept and nothing else moves.
 
     MediaPipe tilts such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg
     elevation: true -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a
-    T-pose, an A-pose, a wave). Arms that hang, bend (hands on the hips, holding a cup) or point at the
-    camera keep their depth."""
+    T-pose, an A-pose, a wave). The far arm of a turned body it can point at the camera where the arm
+    points away: laid into the plane, that forearm hung down beside the hip while the photo shows it
+    held out. Arms that hang, bend (hands on the hips, holding a cup) or point at the camera keep their
+    depth."""
     out = np.asarray(world, np.float64).copy()
-    normal = np.cross(out[5] - out[6], np.asarray(up, np.float64))
+    up = np.asarray(up, np.float64) / max(float(np.linalg.norm(up)), 1e-9)
+    normal = np.cross(out[5] - out[6], up)
     if np.linalg.norm(normal) < 1e-6:
         return out.astype(np.float32)
     normal /= np.linalg.norm(normal)
+    side = np.cross(up, normal)  # the plane's horizontal
+    to_image = np.stack([side[:2], up[:2]], axis=1)  # (x, y) of side and up: a plane direction's image direction
+    facing = abs(float(np.linalg.det(to_image))) >= ARM_LIFT_FACING
     turn_cos = np.cos(np.radians(min(shoulder_turn_deg(out), TURN_READ_MAX_DEG))) if turned else 1.0
     for arm in held_out_arms(keypoints, confidences, turn_cos):
-        shoulder, elbow, wrist = ARMS[arm]
-        bones = [out[elbow] - out[shoulder], out[wrist] - out[elbow]]
-        flat = [b - (b @ normal) * normal for b in bones]
-        if min(np.linalg.norm(f) for f in flat) < 1e-6:
+        joints = ARMS[arm]
+        bones = []
+        for a, b in zip(joints[:-1], joints[1:], strict=True):
+            bone = out[b] - out[a]
+            seen = np.asarray(keypoints[b], np.float64) - np.asarray(keypoints[a], np.float64)
+            flat = bone - (bone @ normal) * normal
+            if facing and np.linalg.norm(flat[:2]) > 1e-9 and angle_deg(flat[:2], seen) > ARM_LIFT_DEG:
+                along, rise = np.linalg.solve(to_image, seen)
+                flat = along * side + rise * up
+            bones.append(flat / max(float(np.linalg.norm(flat)), 1e-9) * np.linalg.norm(bone))
+        if min(np.linalg.norm(b) for b in bones) < 1e-6:
             continue
-        upper, fore = (f / np.linalg.norm(f) * np.linalg.norm(b) for f, b in zip(flat, bones, strict=True))
-        out[elbow] = out[shoulder] + upper
-        out[wrist] = out[elbow] + fore
+        out[joints[1]] = out[joints[0]] + bones[0]
+        out[joints[2]] = out[joints[1]] + bones[1]
     return out.astype(np.float32)
 
 
