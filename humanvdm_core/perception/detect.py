@@ -59,7 +59,8 @@ Contract of :func:`detect_person`:
   the photo's border within :data:`BACKGROUND_DISTANCE` of one of at most :data:`BACKGROUND_COLOURS`
   colours: a studio backdrop, or a wall and the floor), whatever differs from those colours, lies
   outside the person's mask, touches it, reaches within
-  :data:`HAND_REACH` of the person's height of a detected wrist and covers at least
+  :data:`HAND_REACH` of the person's height of a wrist (at least :data:`HELD_WRIST_CONFIDENCE` sure: the
+  hand that holds it is often hidden by it) and covers at least
   :data:`HELD_MIN_AREA` of the mask is added to the mask, with a warning
   (:func:`held_objects`). Not with an alpha cut-out (the user's mask is the mask) nor on a busy
   background (the object cannot be told from it).
@@ -108,7 +109,10 @@ BORDER = 0.02  # the photo's border band (share of the short side) that shows th
 BACKGROUND_DISTANCE = 0.12  # RGB distance within which a pixel has the background's colour
 PLAIN_SHARE = 0.9  # the background is plain when at least this share of the border has one of its colours ...
 BACKGROUND_COLOURS = 2  # ... of at most this many (a wall and the floor)
-HAND_REACH = 0.08  # a held object comes this close to a wrist (share of the person's height)
+HAND_REACH = 0.08  # a held object comes this close to a wrist (share of the person's height) ...
+# ... the wrist at least this sure: the hand that holds an object is often hidden by it (a binder held before
+# the chest in profile: 0.21), and MediaPipe's guess of it still lies by the object
+HELD_WRIST_CONFIDENCE = 0.1
 HELD_MIN_AREA = 0.02  # a held object covers at least this share of the person's mask (else: an edge fringe)
 SURE_PERSON = 0.97  # the segmentation at least this sure, and TRIM_INNER inside its edge, is the person ...
 TRIM_INNER = 0.01  # ... share of the person's height
@@ -407,7 +411,7 @@ def held_objects(rgb: np.ndarray, mask: np.ndarray, keypoints: np.ndarray, confi
     none = np.zeros(mask.shape, bool)
     colours = background_colours(rgb)
     person = mask > 0.5
-    wrists = [keypoints[i] for i in (9, 10) if confidences[i] >= MIN_CONFIDENCE]
+    wrists = [keypoints[i] for i in (9, 10) if confidences[i] >= HELD_WRIST_CONFIDENCE]
     if colours is None or not wrists or not person.any():
         return none
     ys = np.nonzero(person.any(axis=1))[0]
