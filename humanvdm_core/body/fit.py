@@ -82,9 +82,10 @@ Contract:
     its 2D knees are first raised (:func:`~humanvdm_core.body.landmarks.raise_seated_knees`,
     ``FitOptions.seated_knees``): the detector puts them 0.06-0.14 of the torso too low (the more, the
     lower the camera), which sloped the thighs 15-20 deg down -- where a thigh points at the camera; a
-    thigh seen at a slant (a seated person photographed from the side) keeps its knee where it is read. A single photo of a person standing still
-    (:func:`standing_still`) also gets the stance term (``stance_weight``, :meth:`_Problem.stance_term`):
-    each knee bent beyond :data:`STANCE_KNEE_FREE_DEG` and the ankles' centre more than
+    thigh seen at a slant (a seated person photographed from the side) keeps its knee where it is read.
+    A single photo of a person standing still (:func:`standing_still`) also gets the stance term
+    (``stance_weight``, :meth:`_Problem.stance_term`): each knee bent beyond
+    :data:`STANCE_KNEE_FREE_DEG` and the ankles' centre more than
     :data:`STANCE_FEET_FREE` in front of or behind the hips' (along the camera's horizontal view)
     cost, squared. MediaPipe bends the knees of people who stand straight (its 3D knees 17-20 deg on
     every standing render; on real people in trousers its 2D shins come out a fifth short, so the

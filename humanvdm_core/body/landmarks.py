@@ -72,7 +72,6 @@ HEAD_CONFIDENCE = 0.5
 # far one hidden behind the head (MediaPipe's 3D wrists there lie 0.22-0.27 m from the head's centre).
 ELBOW_RAISED = 0.05
 HEAD_REACH = 0.3
-WRISTS = (9, 10)  # COCO-17 left, right wrist
 # A person standing still (see standing_still): in the photo both legs' hips, knees and ankles at least
 # STANCE_CONFIDENCE sure, each thigh within STANCE_THIGH_DEG and shin within STANCE_SHIN_DEG of straight
 # down and the thigh at least STANCE_THIGH_LENGTH of the torso's length (not foreshortened: a seated or
@@ -204,9 +203,10 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     (:func:`held_out_arms` of the 2D ``keypoints`` (17, 2 pixels) and ``confidences``; with ``turned``, read
     in the plane of a body turned as the 3D shoulder line is, up to :data:`TURN_READ_MAX_DEG`) turned into
     the body's frontal plane (the plane through the 3D shoulder line and ``up``, the world's up in the
-    camera's axes): each bone laid into the plane, or, where laid so it points more than
-    :data:`ARM_LIFT_DEG` from the photo's bone, the photo's bone lifted into the plane (the direction in
-    the plane that the camera sees along it); bone lengths are kept and nothing else moves.
+    camera's axes): each bone laid into the plane, or, with ``turned`` (a single photo: an orbit's other
+    views see the arm's depth), where laid so it points more than :data:`ARM_LIFT_DEG` from the photo's
+    bone, the photo's bone lifted into the plane (the direction in the plane that the camera sees along
+    it); bone lengths are kept and nothing else moves.
 
     MediaPipe tilts such forearms 18-29 deg towards the camera (synthetic A-pose renders at 10 deg
     elevation: true -8 deg, theirs +18 to +21), while people hold an arm out sideways in that plane (a
@@ -231,7 +231,7 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
             bone = out[b] - out[a]
             seen = np.asarray(keypoints[b], np.float64) - np.asarray(keypoints[a], np.float64)
             flat = bone - (bone @ normal) * normal
-            if facing and np.linalg.norm(flat[:2]) > 1e-9 and angle_deg(flat[:2], seen) > ARM_LIFT_DEG:
+            if turned and facing and np.linalg.norm(flat[:2]) > 1e-9 and angle_deg(flat[:2], seen) > ARM_LIFT_DEG:
                 along, rise = np.linalg.solve(to_image, seen)
                 flat = along * side + rise * up
             bones.append(flat / max(float(np.linalg.norm(flat)), 1e-9) * np.linalg.norm(bone))
@@ -287,7 +287,7 @@ def _sure_ears(confidences: np.ndarray) -> list[int]:
 
 
 def hands_on_head(world: np.ndarray, confidences: np.ndarray) -> list[int]:
-    """The COCO-17 wrists (:data:`WRISTS`) that the detector's 3D landmarks ``world`` (17, 3, camera
+    """The COCO-17 wrists (9 left, 10 right) that the detector's 3D landmarks ``world`` (17, 3, camera
     axes, metres, y down) place on the head: within :data:`HEAD_TOUCH` of the centre of the nose and the
     ears across the image plane (x, y), the wrist, the nose and an ear at least :data:`HEAD_CONFIDENCE`
     sure (``confidences`` (17,)) -- a palm on the cheek, a hand on the chin, at the ear or on top of the
