@@ -648,7 +648,8 @@ def test_only_a_seated_persons_knees_are_raised():
 
 
 def test_frontal_arms_moves_only_arms_held_out_to_the_side():
-    """frontal_arms on hand-made landmarks (a level camera: the frontal plane is the image plane)."""
+    """frontal_arms on hand-made landmarks (a level camera: the frontal plane is the image plane); a seated
+    person's arms stay where the detector put them in a single photo."""
     from humanvdm_core.body.landmarks import frontal_arms
 
     up = np.array([0.0, -1.0, 0.0])
@@ -682,6 +683,12 @@ def test_frontal_arms_moves_only_arms_held_out_to_the_side():
     unsure[9] = 0.3
     for k, c in ((bent, conf), (short, conf), (kp, unsure)):
         np.testing.assert_allclose(frontal_arms(world.astype(np.float32), k, c, up), world, atol=1e-6)
+    # a seated person (thighs at the camera) keeps a single photo's arms: a straight arm reaches for the knees
+    seated = world.copy()
+    seated[[13, 14]] = [[0.1, 0.15, -0.4], [-0.1, 0.15, -0.4]]
+    np.testing.assert_allclose(frontal_arms(seated.astype(np.float32), kp, conf, up), seated, atol=1e-6)
+    laid = frontal_arms(seated.astype(np.float32), kp, conf, up, turned=False)  # an orbit's frame: laid as seen
+    np.testing.assert_allclose(laid[[7, 9], 2], world[5, 2], atol=1e-6)
 
 
 def test_an_arm_held_out_from_a_turned_body_is_read_in_its_plane():

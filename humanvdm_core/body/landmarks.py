@@ -213,8 +213,11 @@ def frontal_arms(world: np.ndarray, keypoints: np.ndarray, confidences: np.ndarr
     T-pose, an A-pose, a wave). The far arm of a turned body it can point at the camera where the arm
     points away: laid into the plane, that forearm hung down beside the hip while the photo shows it
     held out. Arms that hang, bend (hands on the hips, holding a cup) or point at the camera keep their
-    depth."""
+    depth, and so, in a single photo (``turned``), do a :func:`seated` person's: a straight arm of
+    someone seated reaches for the lap or the knees, not out to the side."""
     out = np.asarray(world, np.float64).copy()
+    if turned and seated(confidences, out, np.asarray(up, np.float64)):
+        return out.astype(np.float32)
     up = np.asarray(up, np.float64) / max(float(np.linalg.norm(up)), 1e-9)
     normal = np.cross(out[5] - out[6], up)
     if np.linalg.norm(normal) < 1e-6:
